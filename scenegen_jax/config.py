@@ -1,0 +1,180 @@
+"""Frozen configuration dataclasses and the presets `paper`, `cpu` and `tiny`.
+
+Every shape in the library comes from a `Config`; nothing is hard-coded for one grid.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from typing import Any
+
+# Map layer groups and the raster channels each contributes, in channel order.
+LAYER_GROUPS: dict[str, tuple[str, ...]] = {
+    "lanes": (
+        "lane_vehicle",
+        "lane_bike",
+        "lane_bus",
+        "lane_centerline",
+        "lane_boundary_crossable",
+        "lane_boundary_uncrossable",
+        "lane_intersection",
+        "lane_orientation_cos",
+        "lane_orientation_sin",
+    ),
+    "drivable": ("drivable_area",),
+    "crosswalks": ("crosswalk",),
+}
+ALL_LAYER_GROUPS: tuple[str, ...] = ("lanes", "drivable", "crosswalks")
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """All hyperparameters of data, model, training and sampling.
+
+    Attributes:
+      name: preset name.
+      grid_size: H = W of every raster, pixels.
+      m_per_px: raster resolution, metres per pixel (region side = grid_size * m_per_px).
+      map_layers: layer groups rasterized as map channels (see `LAYER_GROUPS`).
+      max_actors: N, actor slots per scene (excluding the ego).
+      hidden: ConvLSTM / backbone channels.
+      backbone_layers: 3x3 conv layers in the backbone.
+      gn_groups: GroupNorm groups.
+      num_mixtures: K, mixture components of box, heading and velocity.
+      hard_negatives: bins in the training location normaliser (hard negative mining).
+      bptt_window: W, steps per truncated-backprop window.
+      batch_size: scenes per training step (global, across devices).
+      learning_rate: Adam step size.
+      grad_clip: global-norm clip (0 disables).
+      proposals: M, best-of-M draws per attribute when sampling.
+      zero_speed: speeds (m/s) at or below this are the v = 0 point mass.
+      pedestrian_size_m: nominal pedestrian footprint side, m (pedestrians are points).
+      ego_size_m: (width, length) of the ego box, m.
+      rotate_augment: random rotation about the ego during training.
+      seed: base random seed.
+    """
+
+    name: str = "tiny"
+    grid_size: int = 32
+    m_per_px: float = 2.5
+    map_layers: tuple[str, ...] = ALL_LAYER_GROUPS
+    max_actors: int = 48
+    hidden: int = 16
+    backbone_layers: int = 5
+    gn_groups: int = 4
+    num_mixtures: int = 3
+    hard_negatives: int = 512
+    bptt_window: int = 25
+    batch_size: int = 4
+    learning_rate: float = 1e-3
+    grad_clip: float = 1.0
+    proposals: int = 10
+    zero_speed: float = 0.2
+    pedestrian_size_m: float = 0.6
+    ego_size_m: tuple[float, float] = (1.95, 4.9)
+    rotate_augment: bool = True
+    seed: int = 0
+
+    def __post_init__(self):
+        unknown = set(self.map_layers) - set(LAYER_GROUPS)
+        if unknown:
+            raise ValueError(f"unknown map layer groups {sorted(unknown)}; known: {ALL_LAYER_GROUPS}")
+        if self.grid_size <= 0 or self.m_per_px <= 0:
+            raise ValueError("grid_size and m_per_px must be positive")
+
+    @property
+    def region_m(self) -> float:
+        """Side of the square region of interest, m."""
+        return self.grid_size * self.m_per_px
+
+    @property
+    def bin_area(self) -> float:
+        """Area of one location bin, m^2."""
+        return self.m_per_px**2
+
+    @property
+    def map_channels(self) -> tuple[str, ...]:
+        """Names of the map raster channels, in order."""
+        return tuple(c for g in ALL_LAYER_GROUPS if g in self.map_layers for c in LAYER_GROUPS[g])
+
+    @property
+    def canvas_size(self) -> int:
+        """Side (px) of the cached map canvas: large enough to crop any rotation of the grid."""
+        return 2 * math.ceil(self.grid_size * math.sqrt(2.0) / 2.0) + 2
+
+    def replace(self, **kw: Any) -> Config:
+        return dataclasses.replace(self, **kw)
+
+    def to_json(self) -> str:
+        return json.dumps(dataclasses.asdict(self), indent=2)
+
+    @classmethod
+    def from_json(cls, text: str) -> Config:
+        d = json.loads(text)
+        d["map_layers"] = tuple(d["map_layers"])
+        d["ego_size_m"] = tuple(d["ego_size_m"])
+        return cls(**d)
+
+
+PRESETS: dict[str, Config] = {
+    # As published: 80 m x 80 m at 0.25 m/px, K = 10, 10,000 hard negatives, batch 16.
+    "paper": Config(
+        name="paper",
+        grid_size=320,
+        m_per_px=0.25,
+        max_actors=128,
+        hidden=32,
+        gn_groups=8,
+        num_mixtures=10,
+        hard_negatives=10_000,
+        batch_size=16,
+        learning_rate=1e-4,
+        grad_clip=0.0,
+    ),
+    # Trains in hours on 2 CPU cores: 1 m/px, same widths as the paper.
+    "cpu": Config(
+        name="cpu",
+        grid_size=80,
+        m_per_px=1.0,
+        max_actors=96,
+        hidden=32,
+        gn_groups=8,
+        num_mixtures=10,
+        hard_negatives=2_000,
+        batch_size=8,
+        learning_rate=3e-4,
+    ),
+    # Tests and the demo: minutes on 2 cores.
+    "tiny": Config(),
+}
+
+
+def get_config(name: str, **overrides: Any) -> Config:
+    """Returns a preset with `overrides` applied (values parsed from strings if needed)."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown config {name!r}; choose one of {sorted(PRESETS)}")
+    base = PRESETS[name]
+    fields = {f.name: f for f in dataclasses.fields(Config)}
+    parsed: dict[str, Any] = {}
+    for key, value in overrides.items():
+        if key not in fields:
+            raise ValueError(f"unknown config field {key!r}; fields: {sorted(fields)}")
+        parsed[key] = _parse(getattr(base, key), value)
+    return base.replace(**parsed)
+
+
+def _parse(current: Any, value: Any) -> Any:
+    if not isinstance(value, str):
+        return value
+    if isinstance(current, bool):
+        return value.lower() in ("1", "true", "yes")
+    if isinstance(current, int):
+        return int(value)
+    if isinstance(current, float):
+        return float(value)
+    if isinstance(current, tuple):
+        items = [v for v in value.split(",") if v]
+        return tuple(type(current[0])(v) if current else v for v in items)
+    return value

@@ -1,0 +1,109 @@
+"""A vector HD map (host side, numpy): lanes, crosswalks and drivable areas in one frame."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+LANE_TYPES = ("VEHICLE", "BIKE", "BUS")
+
+
+def is_crossable(mark_type: str) -> bool | None:
+    """Whether a painted lane mark may be crossed; None when there is no painted mark."""
+    mark = mark_type.upper()
+    if mark in ("NONE", "UNKNOWN", ""):
+        return None
+    return "DASH" in mark
+
+
+@dataclasses.dataclass(frozen=True)
+class Lane:
+    """A lane segment.
+
+    Attributes:
+      id: lane id.
+      lane_type: one of LANE_TYPES.
+      left, right: [P, 2] boundary polylines (m), both in the direction of travel.
+      left_mark, right_mark: painted mark types (Argoverse 2 names, e.g. "SOLID_WHITE").
+      is_intersection: lane lies inside an intersection.
+      successors, predecessors: ids of connected lanes.
+    """
+
+    id: int
+    lane_type: str
+    left: np.ndarray
+    right: np.ndarray
+    left_mark: str = "NONE"
+    right_mark: str = "NONE"
+    is_intersection: bool = False
+    successors: tuple[int, ...] = ()
+    predecessors: tuple[int, ...] = ()
+
+    @property
+    def centerline(self) -> np.ndarray:
+        """[P, 2] centreline: mean of the two boundaries resampled to a common length."""
+        n = max(len(self.left), len(self.right), 2)
+        return 0.5 * (resample_polyline(self.left, n) + resample_polyline(self.right, n))
+
+    @property
+    def polygon(self) -> np.ndarray:
+        """[P, 2] closed lane outline: left boundary then the right one reversed."""
+        return np.concatenate([self.left, self.right[::-1]], axis=0)
+
+
+@dataclasses.dataclass(frozen=True)
+class VectorMap:
+    """Lanes, crosswalk polygons and drivable-area polygons (all [P, 2] arrays, m)."""
+
+    lanes: tuple[Lane, ...] = ()
+    crosswalks: tuple[np.ndarray, ...] = ()
+    drivable_areas: tuple[np.ndarray, ...] = ()
+
+    def transform(self, rotation: np.ndarray, translation: np.ndarray) -> VectorMap:
+        """Applies p -> rotation @ p + translation to every point."""
+        rot = np.asarray(rotation, np.float64)
+        trans = np.asarray(translation, np.float64)
+
+        def f(points: np.ndarray) -> np.ndarray:
+            return points @ rot.T + trans
+
+        lanes = tuple(
+            dataclasses.replace(lane, left=f(lane.left), right=f(lane.right)) for lane in self.lanes
+        )
+        return VectorMap(
+            lanes=lanes,
+            crosswalks=tuple(f(p) for p in self.crosswalks),
+            drivable_areas=tuple(f(p) for p in self.drivable_areas),
+        )
+
+    def crop(self, center: np.ndarray, radius: float) -> VectorMap:
+        """Keeps the elements with a point within `radius` m (box test) of `center`."""
+        c = np.asarray(center, np.float64)
+
+        def near(points: np.ndarray) -> bool:
+            lo, hi = points.min(axis=0), points.max(axis=0)
+            return bool(np.all(lo <= c + radius) and np.all(hi >= c - radius))
+
+        return VectorMap(
+            lanes=tuple(lane for lane in self.lanes if near(lane.polygon)),
+            crosswalks=tuple(p for p in self.crosswalks if near(p)),
+            drivable_areas=tuple(p for p in self.drivable_areas if near(p)),
+        )
+
+
+def resample_polyline(points: np.ndarray, n: int) -> np.ndarray:
+    """n points equally spaced by arc length along a polyline [P, 2]."""
+    points = np.asarray(points, np.float64)
+    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    if s[-1] <= 0:
+        return np.repeat(points[:1], n, axis=0)
+    t = np.linspace(0.0, s[-1], n)
+    return np.stack([np.interp(t, s, points[:, 0]), np.interp(t, s, points[:, 1])], axis=1)
+
+
+def rotation_matrix(theta: float) -> np.ndarray:
+    """2x2 counter-clockwise rotation by theta rad."""
+    c, s = np.cos(theta), np.sin(theta)
+    return np.array([[c, -s], [s, c]])
