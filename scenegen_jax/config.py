@@ -102,7 +102,7 @@ class Config:
     @property
     def canvas_size(self) -> int:
         """Side (px) of the cached map canvas: large enough to crop any rotation of the grid."""
-        return 2 * math.ceil(self.grid_size * math.sqrt(2.0) / 2.0) + 2
+        return self.grid_size + 2 * math.ceil(self.grid_size * (math.sqrt(2.0) - 1.0) / 2.0 + 1.0)
 
     def replace(self, **kw: Any) -> Config:
         return dataclasses.replace(self, **kw)
@@ -175,6 +175,8 @@ def _parse(current: Any, value: Any) -> Any:
     if isinstance(current, float):
         return float(value)
     if isinstance(current, tuple):
+        if value.lower() in ("", "none"):
+            return ()
         items = [v for v in value.split(",") if v]
         return tuple(type(current[0])(v) if current else v for v in items)
     return value

@@ -1,0 +1,236 @@
+"""Preprocessing cache: map canvases and padded actor arrays that training reads fast.
+
+Layout of a cache directory:
+  meta.json     config (grid, resolution), channel names, scene ids, the prepare summary
+  maps.npy      float16 [S, C, C, len(ALL_MAP_CHANNELS)] map canvases (C = canvas_size)
+  actors.npz    padded actors [S, A] (cls, position, size, heading, velocity, valid), the
+                ego (velocity, size) per scene, and the ego's city pose [S, 3, 3]
+
+The canvas covers every rotation of the grid about the ego, and the actors are those within
+the canvas's inscribed circle, so rotation augmentation never reaches outside the cache.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import json
+import logging
+import math
+import os
+from collections.abc import Iterable
+
+import numpy as np
+
+from scenegen_jax.config import Config
+from scenegen_jax.data.frame import Frame
+from scenegen_jax.raster.map import ALL_MAP_CHANNELS, rasterize_map
+from scenegen_jax.scene import CLASS_NAMES, Actors, in_region
+
+log = logging.getLogger(__name__)
+CACHE_VERSION = 1
+ACTOR_FIELDS = ("cls", "position", "size", "heading", "velocity", "valid")
+
+
+def cache_slots(cfg: Config) -> int:
+    """Actor slots stored per scene: room for the in-region maximum under any rotation."""
+    return 2 * cfg.max_actors
+
+
+def canvas_radius(cfg: Config) -> float:
+    """Radius (m) of the disc that holds the grid under every rotation (its half diagonal)."""
+    return cfg.region_m / math.sqrt(2.0)
+
+
+@dataclasses.dataclass
+class Summary:
+    """What `prepare` wrote and dropped (printed as one JSON line).
+
+    `actors` counts actors inside the region of interest per class, `outside_region` the rows
+    of modelled classes outside it (kept in the cache only as far as rotations can reach), so
+    actors + outside_region is every row of a modelled class that was read.
+    """
+
+    scenes: int = 0
+    actors: dict = dataclasses.field(default_factory=lambda: {c: 0 for c in CLASS_NAMES})
+    dropped: dict = dataclasses.field(default_factory=dict)
+    outside_region: dict = dataclasses.field(default_factory=lambda: {c: 0 for c in CLASS_NAMES})
+    overflow: int = 0
+    empty_scenes: int = 0
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def write_cache(
+    frames: Iterable[Frame], out_dir: str, cfg: Config, drops: collections.Counter, progress=None
+) -> Summary:
+    """Rasterizes and pads every frame into `out_dir`; returns the summary.
+
+    `drops` is the reader's counter of dropped rows; it is read after the frames are consumed.
+    Actor counts are of actors inside the region of interest (the ones a scene models).
+    """
+    os.makedirs(out_dir, exist_ok=True)
+    size = cfg.canvas_size
+    slots = cache_slots(cfg)
+    summary = Summary()
+    maps, arrays, ids, ego_v, ego_size, poses = [], collections.defaultdict(list), [], [], [], []
+    for frame in frames:
+        maps.append(rasterize_map(frame.map, size, cfg.m_per_px).astype(np.float16))
+        padded, inside, overflow = pad_frame_actors(frame, cfg, slots)
+        for k in ACTOR_FIELDS:
+            arrays[k].append(padded[k])
+        ids.append(frame.scene_id)
+        ego_v.append(frame.ego_velocity)
+        ego_size.append(frame.ego_size)
+        poses.append(frame.city_from_ego)
+        summary.scenes += 1
+        for c, name in enumerate(CLASS_NAMES):
+            summary.actors[name] += int(np.sum(inside & (frame.cls == c)))
+            summary.outside_region[name] += int(np.sum(~inside & (frame.cls == c)))
+        summary.overflow += overflow
+        summary.empty_scenes += int(not inside.any())
+        if progress is not None:
+            progress.update(1)
+    if not ids:
+        raise ValueError(f"{out_dir}: no scenes to write")
+    summary.dropped = dict(sorted(drops.items()))
+    np.save(os.path.join(out_dir, "maps.npy"), np.stack(maps))
+    np.savez(
+        os.path.join(out_dir, "actors.npz"),
+        **{k: np.stack(v) for k, v in arrays.items()},
+        ego_velocity=np.stack(ego_v).astype(np.float32),
+        ego_size=np.stack(ego_size).astype(np.float32),
+        city_from_ego=np.stack(poses),
+    )
+    meta = {
+        "version": CACHE_VERSION,
+        "grid_size": cfg.grid_size,
+        "m_per_px": cfg.m_per_px,
+        "canvas_size": size,
+        "slots": slots,
+        "channels": list(ALL_MAP_CHANNELS),
+        "config": json.loads(cfg.to_json()),
+        "scene_ids": ids,
+        "summary": summary.to_dict(),
+    }
+    with open(os.path.join(out_dir, "meta.json"), "w") as f:
+        json.dump(meta, f, indent=1)
+    return summary
+
+
+def pad_frame_actors(frame: Frame, cfg: Config, slots: int) -> tuple[dict, np.ndarray, int]:
+    """Actors within the canvas disc, nearest first, padded to `slots`.
+
+    Returns:
+      (padded arrays by field, in-region flag per frame actor, count of disc actors beyond
+      `slots` that were dropped).
+    """
+    pos = np.asarray(frame.position, np.float64)
+    inside = np.asarray(in_region(pos, cfg))
+    dist = np.linalg.norm(pos, axis=1)
+    near = np.flatnonzero(dist <= canvas_radius(cfg))
+    near = near[np.argsort(dist[near], kind="stable")]
+    overflow = max(len(near) - slots, 0)
+    if overflow:
+        log.warning("%s: %d actors beyond %d cache slots dropped", frame.scene_id, overflow, slots)
+    near = near[:slots]
+    n = len(near)
+    out = {
+        "cls": np.zeros(slots, np.int32),
+        "position": np.zeros((slots, 2), np.float32),
+        "size": np.zeros((slots, 2), np.float32),
+        "heading": np.zeros(slots, np.float32),
+        "velocity": np.zeros((slots, 2), np.float32),
+        "valid": np.zeros(slots, bool),
+    }
+    out["cls"][:n] = frame.cls[near]
+    out["position"][:n] = pos[near]
+    out["size"][:n] = frame.size[near]
+    out["heading"][:n] = frame.heading[near]
+    out["velocity"][:n] = frame.velocity[near]
+    out["valid"][:n] = True
+    return out, inside, overflow
+
+
+@dataclasses.dataclass
+class Cache:
+    """A loaded cache: map canvases (memory-mapped) and actor arrays."""
+
+    path: str
+    meta: dict
+    maps: np.ndarray  # float16 [S, C, C, len(ALL_MAP_CHANNELS)]
+    actors: Actors  # numpy fields [S, A]
+    ego_velocity: np.ndarray  # [S, 2] m/s
+    ego_size: np.ndarray  # [S, 2] m
+    city_from_ego: np.ndarray  # [S, 3, 3]
+
+    def __len__(self) -> int:
+        return len(self.meta["scene_ids"])
+
+    @property
+    def scene_ids(self) -> list[str]:
+        return self.meta["scene_ids"]
+
+    def check_config(self, cfg: Config) -> None:
+        """Raises if `cfg`'s grid does not match the grid the cache was prepared for."""
+        grid = (self.meta["grid_size"], self.meta["m_per_px"])
+        if grid != (cfg.grid_size, cfg.m_per_px):
+            raise ValueError(
+                f"{self.path}: cache prepared for grid {grid[0]} px at {grid[1]} m/px, but config "
+                f"{cfg.name!r} wants {cfg.grid_size} px at {cfg.m_per_px} m/px; re-run prepare "
+                f"with --config {cfg.name}"
+            )
+
+
+def load_cache(path: str) -> Cache:
+    """Opens a cache directory written by `write_cache`; errors name the file and field."""
+    meta_path = os.path.join(path, "meta.json")
+    if not os.path.isfile(meta_path):
+        raise FileNotFoundError(f"{meta_path}: not a scenegen cache (run `scenegen prepare`)")
+    with open(meta_path) as f:
+        meta = json.load(f)
+    if meta.get("version") != CACHE_VERSION:
+        raise ValueError(f"{meta_path}: field version: {meta.get('version')} != {CACHE_VERSION}")
+    if meta.get("channels") != list(ALL_MAP_CHANNELS):
+        raise ValueError(f"{meta_path}: field channels: cache channels differ from this version")
+    maps = np.load(os.path.join(path, "maps.npy"), mmap_mode="r", allow_pickle=False)
+    npz_path = os.path.join(path, "actors.npz")
+    with np.load(npz_path, allow_pickle=False) as z:
+        data = {k: z[k] for k in z.files}
+    missing = [k for k in (*ACTOR_FIELDS, "ego_velocity", "ego_size") if k not in data]
+    if missing:
+        raise ValueError(f"{npz_path}: missing field(s) {missing}")
+    n = len(meta["scene_ids"])
+    for k, v in data.items():
+        if v.shape[0] != n:
+            raise ValueError(f"{npz_path}: field {k}: {v.shape[0]} scenes, meta.json has {n}")
+    if maps.shape[0] != n:
+        raise ValueError(f"{path}/maps.npy: {maps.shape[0]} scenes, meta.json has {n}")
+    actors = Actors(**{k: data[k] for k in ACTOR_FIELDS})
+    actors.validate(f"{npz_path}: actors")
+    return Cache(
+        path=path,
+        meta=meta,
+        maps=maps,
+        actors=actors,
+        ego_velocity=data["ego_velocity"],
+        ego_size=data["ego_size"],
+        city_from_ego=data.get("city_from_ego", np.tile(np.eye(3), (n, 1, 1))),
+    )
+
+
+def cached_scene(cache: Cache, index: int, cfg: Config) -> tuple[np.ndarray, Actors, Actors]:
+    """(map canvas, cached actors [A], ego) of scene `index`, as numpy."""
+    if not 0 <= index < len(cache):
+        raise IndexError(f"{cache.path}: scene index {index} out of range [0, {len(cache)})")
+    actors = Actors(**{k: getattr(cache.actors, k)[index] for k in ACTOR_FIELDS})
+    ego = Actors(
+        cls=np.int32(0),
+        position=np.zeros(2, np.float32),
+        size=cache.ego_size[index],
+        heading=np.float32(0.0),
+        velocity=cache.ego_velocity[index],
+        valid=np.bool_(True),
+    )
+    return np.asarray(cache.maps[index]), actors, ego

@@ -1,0 +1,1 @@
+"""Matplotlib renders of scenes and location heatmaps."""
