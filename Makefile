@@ -1,0 +1,29 @@
+# scenegen_jax: `make demo` and `make test` are the two commands; both install first.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+DATA ?= ../shared/data/av2_sensor_mini
+OUT ?= out/demo
+DEMO_CONFIG ?= tiny
+
+.PHONY: install test demo bench lint clean
+
+install: $(VENV)/.installed
+
+$(VENV)/.installed: pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+	$(BIN)/pip install -q -e '.[test]'
+	touch $@
+
+test: install
+	$(BIN)/python -m pytest
+
+lint: install
+	$(BIN)/ruff check scenegen_jax tests experiments
+
+demo: install
+	bash experiments/demo.sh $(DATA) $(OUT) $(DEMO_CONFIG)
+
+clean:
+	rm -rf $(OUT) .pytest_cache

@@ -1,0 +1,43 @@
+"""Shared fixtures: the real Argoverse 2 mini logs in ../shared, read in place."""
+
+from __future__ import annotations
+
+import collections
+import os
+
+import pytest
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+DATA_ROOT = os.path.normpath(os.path.join(REPO, "..", "shared", "data", "av2_sensor_mini"))
+
+
+@pytest.fixture(scope="session")
+def data_root() -> str:
+    if not os.path.isdir(DATA_ROOT):
+        pytest.fail(f"real data missing: {DATA_ROOT} (../shared must sit beside the repo)")
+    return DATA_ROOT
+
+
+@pytest.fixture(scope="session")
+def all_frames(data_root):
+    """Every frame of the four logs, by split, with the drop counters."""
+    from scenegen_jax.data.av2 import read_split
+
+    out = {}
+    for split in ("train", "val"):
+        drops = collections.Counter()
+        out[split] = (list(read_split(data_root, split, drops)), drops)
+    return out
+
+
+@pytest.fixture(scope="session")
+def tiny_train_cache(tmp_path_factory, data_root):
+    """A tiny-config cache of every 8th train frame (written once per session)."""
+    from scenegen_jax.config import get_config
+    from scenegen_jax.data.av2 import read_split
+    from scenegen_jax.data.cache import load_cache, write_cache
+
+    out = str(tmp_path_factory.mktemp("cache_tiny"))
+    drops = collections.Counter()
+    write_cache(read_split(data_root, "train", drops, stride=8), out, get_config("tiny"), drops)
+    return load_cache(out)

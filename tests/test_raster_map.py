@@ -1,0 +1,105 @@
+"""Map rasterization: hand-checkable cases and consistency under rotation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from scenegen_jax.config import get_config
+from scenegen_jax.data.cache import cached_scene
+from scenegen_jax.data.vector_map import Lane, VectorMap, rotation_matrix
+from scenegen_jax.raster.map import ALL_MAP_CHANNELS, rasterize_map, select_channels
+from scenegen_jax.raster.transform import crop_map, scene_from_cached
+from scenegen_jax.scene import VEHICLE, pixel_of
+
+CH = {name: i for i, name in enumerate(ALL_MAP_CHANNELS)}
+
+
+def _lane(x0, x1, y, width=3.6, **kw):
+    xs = np.linspace(x0, x1, 5)
+    return Lane(id=1, lane_type=kw.pop("lane_type", "VEHICLE"),
+                left=np.stack([xs, np.full(5, y + width / 2)], 1),
+                right=np.stack([xs, np.full(5, y - width / 2)], 1), **kw)
+
+
+def test_square_drivable_area_pixel_count():
+    square = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]])
+    r = rasterize_map(VectorMap(drivable_areas=(square,)), 40, 0.5)
+    assert r[..., CH["drivable_area"]].sum() == 20 * 20
+    # Row 0 is the top (+y): the square sits in the upper right quadrant.
+    d = r[..., CH["drivable_area"]]
+    assert d[:20, 20:].sum() == 400 and d[20:, :].sum() == 0
+
+
+def test_lane_channels_orientation_and_marks():
+    lane = _lane(-10, 10, 0.0, left_mark="SOLID_YELLOW", right_mark="DASHED_WHITE",
+                 is_intersection=True)
+    r = rasterize_map(VectorMap(lanes=(lane,)), 40, 1.0)
+    inside = r[..., CH["lane_vehicle"]] > 0
+    assert inside.sum() == pytest.approx(20 * 3.6, abs=20)
+    assert np.allclose(r[inside, CH["lane_orientation_cos"]], 1.0)
+    assert np.allclose(r[inside, CH["lane_orientation_sin"]], 0.0)
+    assert np.array_equal(inside, r[..., CH["lane_intersection"]] > 0)
+    # Uncrossable mark on the left (+y, upper rows), crossable on the right.
+    rows_unc = np.flatnonzero(r[..., CH["lane_boundary_uncrossable"]].any(1))
+    rows_cr = np.flatnonzero(r[..., CH["lane_boundary_crossable"]].any(1))
+    assert rows_unc.max() < rows_cr.min()
+    # A lane driven the other way flips the orientation.
+    rev = Lane(id=2, lane_type="BIKE", left=lane.right[::-1], right=lane.left[::-1])
+    r2 = rasterize_map(VectorMap(lanes=(rev,)), 40, 1.0)
+    assert np.allclose(r2[r2[..., CH["lane_bike"]] > 0, CH["lane_orientation_cos"]], -1.0)
+
+
+def test_rotated_vector_map_matches_rotated_canvas(all_frames):
+    cfg = get_config("cpu")
+    frame = all_frames["val"][0][40]
+    canvas = rasterize_map(frame.map, cfg.canvas_size, cfg.m_per_px)
+    theta = np.deg2rad(37.0)
+    direct = select_channels(rasterize_map(
+        frame.map.transform(rotation_matrix(theta), np.zeros(2)), cfg.grid_size, cfg.m_per_px),
+        cfg)
+    cropped = np.asarray(crop_map(canvas, theta, cfg))
+    d = CH["drivable_area"]
+    agree = np.mean((cropped[..., d] > 0.5) == (direct[..., d] > 0.5))
+    assert agree > 0.97
+    lanes = direct[..., CH["lane_vehicle"]] > 0.5
+    cos_c = cropped[..., CH["lane_orientation_cos"]][lanes]
+    cos_d = direct[..., CH["lane_orientation_cos"]][lanes]
+    assert np.median(np.abs(cos_c - cos_d)) < 0.05
+
+
+def test_vehicles_keep_their_map_values_under_rotation(tiny_train_cache):
+    cfg = get_config("tiny")
+    d = cfg.map_channels.index("drivable_area")
+    checked = 0
+    for index in range(0, len(tiny_train_cache), 7):
+        canvas, actors, ego = cached_scene(tiny_train_cache, index, cfg)
+        m0, s0, _ = scene_from_cached(canvas, actors, ego, 0.0, cfg)
+        theta = 1.1
+        m1, s1, _ = scene_from_cached(canvas, actors, ego, theta, cfg)
+        m0, m1 = np.asarray(m0)[..., d], np.asarray(m1)[..., d]
+        # Match actors through their rotated positions.
+        p0 = np.asarray(s0.actors.position)[np.asarray(s0.actors.valid)]
+        c0 = np.asarray(s0.actors.cls)[np.asarray(s0.actors.valid)]
+        p1 = np.asarray(s1.actors.position)[np.asarray(s1.actors.valid)]
+        c, s = np.cos(theta), np.sin(theta)
+        for p, k in zip(p0, c0, strict=True):
+            if k != VEHICLE:
+                continue
+            q = np.array([c * p[0] - s * p[1], s * p[0] + c * p[1]])
+            if not np.any(np.linalg.norm(p1 - q, axis=1) < 1e-3):
+                continue  # rotated out of the region
+            r0, col0 = (int(v) for v in pixel_of(p, cfg))
+            r1, col1 = (int(v) for v in pixel_of(q, cfg))
+            window = m0[max(r0 - 1, 0):r0 + 2, max(col0 - 1, 0):col0 + 2]
+            assert window.min() - 1e-3 <= m1[r1, col1] <= window.max() + 1e-3
+            checked += 1
+    assert checked > 50
+
+
+def test_crop_at_zero_rotation_is_exact_centre(tiny_train_cache):
+    cfg = get_config("tiny")
+    canvas, _, _ = cached_scene(tiny_train_cache, 3, cfg)
+    off = (cfg.canvas_size - cfg.grid_size) // 2
+    expected = select_channels(canvas[off:off + cfg.grid_size, off:off + cfg.grid_size], cfg)
+    np.testing.assert_allclose(np.asarray(crop_map(canvas, 0.0, cfg)), expected, atol=1e-6)

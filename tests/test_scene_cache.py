@@ -1,0 +1,122 @@
+"""Scene PyTree conventions, validation and the preprocessing cache."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import jax
+import numpy as np
+import pytest
+
+from scenegen_jax.config import get_config
+from scenegen_jax.data.cache import cached_scene, load_cache
+from scenegen_jax.raster.transform import scene_from_cached
+from scenegen_jax.scene import (
+    PEDESTRIAN,
+    Actors,
+    Scene,
+    bin_center,
+    bin_index,
+    canonical_order,
+    empty_actors,
+    make_ego,
+)
+
+CFG = get_config("tiny")
+
+
+def test_bin_convention_row_major_top_left():
+    half = CFG.region_m / 2
+    assert int(bin_index(np.array([-half + 0.1, half - 0.1]), CFG)) == 0  # top left
+    assert int(bin_index(np.array([half - 0.1, half - 0.1]), CFG)) == CFG.grid_size - 1
+    assert int(bin_index(np.array([-half + 0.1, half - CFG.m_per_px - 0.1]), CFG)) == CFG.grid_size
+    for b in (0, 17, 500, CFG.grid_size**2 - 1):
+        assert int(bin_index(bin_center(b, CFG), CFG)) == b
+
+
+def _actors(positions, cls=None):
+    n = len(positions)
+    a = empty_actors(8)
+    a.position[:n] = positions
+    a.size[:n] = (2.0, 4.5)
+    a.valid[:n] = True
+    if cls is not None:
+        a.cls[:n] = cls
+    return a
+
+
+def test_canonical_order_sorts_left_right_top_bottom():
+    a = _actors([[10.0, -10.0], [-10.0, 10.0], [10.0, 10.0], [-10.0, -10.0]])
+    ordered = canonical_order(a, CFG)
+    pos = np.asarray(ordered.position)[:4]
+    np.testing.assert_allclose(pos, [[-10, 10], [10, 10], [-10, -10], [10, -10]])
+    assert np.asarray(ordered.valid).tolist() == [True] * 4 + [False] * 4
+    jitted = jax.jit(lambda x: canonical_order(x, CFG))(a)
+    np.testing.assert_array_equal(np.asarray(jitted.position), np.asarray(ordered.position))
+
+
+def test_validate_names_the_field():
+    ok = Scene(actors=canonical_order(_actors([[1.0, 2.0], [3.0, -4.0]]), CFG), ego=make_ego(CFG))
+    jax.tree.map(np.asarray, ok).validate(CFG)
+    bad = _actors([[1.0, 2.0]])
+    bad.size[0] = (0.0, 4.0)
+    with pytest.raises(ValueError, match="size"):
+        Scene(actors=bad, ego=make_ego(CFG)).validate(CFG)
+    bad = _actors([[1.0, np.nan]])
+    with pytest.raises(ValueError, match="position"):
+        Scene(actors=bad, ego=make_ego(CFG)).validate(CFG)
+    far = _actors([[500.0, 0.0]])
+    with pytest.raises(ValueError, match="outside"):
+        Scene(actors=far, ego=make_ego(CFG)).validate(CFG)
+    unordered = _actors([[10.0, -10.0], [-10.0, 10.0]])
+    with pytest.raises(ValueError, match="canonical"):
+        Scene(actors=unordered, ego=make_ego(CFG)).validate(CFG)
+    ped = _actors([[1.0, 2.0]], cls=[PEDESTRIAN])
+    ped.size[0] = 0.0  # pedestrians have no box
+    Scene(actors=ped, ego=make_ego(CFG)).validate(CFG)
+
+
+def test_cache_scenes_are_valid_and_complete(tiny_train_cache):
+    cache = tiny_train_cache
+    assert len(cache) == 3 * 20  # every 8th of the 156 frames of each of the 3 train logs
+    assert cache.maps.shape[1:] == (CFG.canvas_size, CFG.canvas_size, 11)
+    for index in range(0, len(cache), 5):
+        canvas, actors, ego = cached_scene(cache, index, CFG)
+        m, scene, overflow = jax.jit(
+            lambda c, a, e, t: scene_from_cached(c, a, e, t, CFG)
+        )(canvas, actors, ego, 0.3 * index)
+        scene = jax.tree.map(np.asarray, scene)
+        scene.validate(CFG, where=f"scene {index}")
+        assert int(overflow) == 0
+        assert m.shape == (CFG.grid_size, CFG.grid_size, len(CFG.map_channels))
+
+
+def test_cache_summary_and_bad_cache(tiny_train_cache, tmp_path):
+    meta = tiny_train_cache.meta
+    assert meta["summary"]["scenes"] == len(tiny_train_cache)
+    with pytest.raises(FileNotFoundError, match="meta.json"):
+        load_cache(str(tmp_path))
+    # A cache whose actor file disagrees with meta.json is refused, naming the file.
+    src = tiny_train_cache.path
+    dst = tmp_path / "broken"
+    dst.mkdir()
+    for name in ("maps.npy", "meta.json"):
+        os.symlink(os.path.join(src, name), dst / name)
+    with np.load(os.path.join(src, "actors.npz")) as z:
+        arrays = {k: z[k][:-1] for k in z.files}
+    np.savez(dst / "actors.npz", **arrays)
+    with pytest.raises(ValueError, match="actors.npz"):
+        load_cache(str(dst))
+    with pytest.raises(ValueError, match="re-run prepare"):
+        tiny_train_cache.check_config(get_config("cpu"))
+    assert json.loads(json.dumps(meta["summary"]))["actors"]["vehicle"] > 0
+
+
+def test_overflow_is_counted():
+    cfg = CFG.replace(max_actors=3)
+    a = _actors([[x, 0.0] for x in (-30.0, -10.0, 5.0, 20.0, 30.0)])
+    canvas = np.zeros((cfg.canvas_size, cfg.canvas_size, 11), np.float32)
+    _, scene, overflow = scene_from_cached(canvas, a, make_ego(cfg), 0.0, cfg)
+    assert int(overflow) == 2 and int(np.sum(scene.actors.valid)) == 3
+    assert isinstance(scene.actors, Actors)
