@@ -1,0 +1,1 @@
+"""The SceneGen network (Flax Linen): ConvLSTM, backbone and heads. No losses here."""

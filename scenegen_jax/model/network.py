@@ -1,0 +1,211 @@
+"""SceneGen network (paper supplementary sec. 1.2): a two-layer ConvLSTM over BEV rasters, a
+five-layer conv backbone, a class MLP, per-class location CNNs and per-class attribute MLPs.
+
+The network is split into methods so the teacher-forced unroll can be fast (see
+`scenegen_jax.train.unroll`): the first ConvLSTM layer's input convolution is linear in its
+input, so conv(map ++ actors) = conv_map(map) + conv_actors(actors). The map part is
+computed once per scene, the actor part for all steps as one batched convolution, and only
+the recurrent convolutions run inside the scan. The backbone and heads do not feed back
+into the recurrence, so they run batched over all steps after it.
+
+All arrays are NHWC; leading axes beyond one batch axis are flattened by the caller.
+"""
+
+from __future__ import annotations
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from scenegen_jax.config import Config
+from scenegen_jax.raster.actors import ACTOR_CHANNELS
+from scenegen_jax.scene import NUM_CLASSES
+
+NUM_ACTOR_CHANNELS = len(ACTOR_CHANNELS)
+
+
+def attribute_sizes(k: int) -> tuple[int, int, int]:
+    """Flat head sizes (box, heading, velocity) for K mixture components."""
+    from scenegen_jax.distributions import BOX_PARAMS, HEADING_PARAMS, VELOCITY_PARAMS
+
+    return BOX_PARAMS(k), HEADING_PARAMS(k), VELOCITY_PARAMS(k)
+
+
+def conv(x, w, b=None):
+    """'SAME' stride-1 convolution, x [B, H, W, Ci], w [kh, kw, Ci, Co]."""
+    y = jax.lax.conv_general_dilated(
+        x, w, (1, 1), "SAME", dimension_numbers=("NHWC", "HWIO", "NHWC")
+    )
+    return y if b is None else y + b
+
+
+def group_norm(x, groups: int, scale, bias, eps: float = 1e-5):
+    """GroupNorm over (H, W, channels of a group) of x [B, H, W, C]."""
+    b, h, w, c = x.shape
+    g = x.reshape(b, h, w, groups, c // groups)
+    mean = jnp.mean(g, axis=(1, 2, 4), keepdims=True)
+    var = jnp.mean(jnp.square(g - mean), axis=(1, 2, 4), keepdims=True)
+    g = (g - mean) * jax.lax.rsqrt(var + eps)
+    return g.reshape(b, h, w, c) * scale + bias
+
+
+def _stacked(init, n: int):
+    """Initialiser for n independently initialised copies stacked on a leading axis."""
+
+    def f(key, shape, dtype=jnp.float32):
+        return jax.vmap(lambda k: init(k, shape[1:], dtype))(jax.random.split(key, n))
+
+    return f
+
+
+def lstm_gates(gates, c):
+    """ConvLSTM cell update from pre-activation gates [.., 4h] (order i, f, o, g)."""
+    i, f, o, g = jnp.split(gates, 4, axis=-1)
+    c = jax.nn.sigmoid(f) * c + jax.nn.sigmoid(i) * jnp.tanh(g)
+    return jax.nn.sigmoid(o) * jnp.tanh(c), c
+
+
+class SceneGenNet(nn.Module):
+    """The network. Parameters are a plain PyTree (Linen), shapes from the config."""
+
+    cfg: Config
+
+    def setup(self):
+        cfg = self.cfg
+        h = cfg.hidden
+        cm = len(cfg.map_channels)
+        conv_init = nn.initializers.lecun_normal()
+        zeros = nn.initializers.zeros
+        ones = nn.initializers.ones
+
+        def lstm_bias(key, shape, dtype=jnp.float32):
+            # Forget gate biased open so the state persists at the start of training.
+            return jnp.zeros(shape, dtype).at[h : 2 * h].set(1.0)
+
+        if cm:
+            self.lstm1_map = self.param("lstm1_map", conv_init, (5, 5, cm, 4 * h))
+        self.lstm1_act = self.param("lstm1_act", conv_init, (5, 5, NUM_ACTOR_CHANNELS, 4 * h))
+        self.lstm1_rec = self.param("lstm1_rec", conv_init, (5, 5, h, 4 * h))
+        self.lstm1_b = self.param("lstm1_b", lstm_bias, (4 * h,))
+        self.lstm2_w = self.param("lstm2_w", conv_init, (5, 5, 2 * h, 4 * h))
+        self.lstm2_b = self.param("lstm2_b", lstm_bias, (4 * h,))
+        self.backbone_w = [
+            self.param(f"backbone{i}_w", conv_init, (3, 3, h, h)) for i in range(cfg.backbone_layers)
+        ]
+        self.backbone_b = [self.param(f"backbone{i}_b", zeros, (h,)) for i in range(cfg.backbone_layers)]
+        self.backbone_gs = [self.param(f"backbone{i}_gn_s", ones, (h,)) for i in range(cfg.backbone_layers)]
+        self.backbone_gb = [self.param(f"backbone{i}_gn_b", zeros, (h,)) for i in range(cfg.backbone_layers)]
+        self.class_mlp = [
+            nn.Dense(h, name="class_mlp0"),
+            nn.Dense(h, name="class_mlp1"),
+            nn.Dense(NUM_CLASSES + 1, name="class_mlp2"),
+        ]
+        n = NUM_CLASSES
+        self.loc_w = [
+            self.param("loc0_w", _stacked(conv_init, n), (n, 3, 3, h, h)),
+            self.param("loc1_w", _stacked(conv_init, n), (n, 3, 3, h, h)),
+            self.param("loc2_w", _stacked(conv_init, n), (n, 1, 1, h, 1)),
+        ]
+        self.loc_b = [
+            self.param("loc0_b", zeros, (n, h)),
+            self.param("loc1_b", zeros, (n, h)),
+            self.param("loc2_b", zeros, (n, 1)),
+        ]
+        self.loc_gs = [self.param(f"loc{i}_gn_s", ones, (n, h)) for i in range(2)]
+        self.loc_gb = [self.param(f"loc{i}_gn_b", zeros, (n, h)) for i in range(2)]
+        out = sum(attribute_sizes(cfg.num_mixtures))
+        dense_init = nn.initializers.lecun_normal()
+        self.attr_w = [
+            self.param("attr0_w", _stacked(dense_init, n), (n, h, h)),
+            self.param("attr1_w", _stacked(dense_init, n), (n, h, h)),
+            self.param("attr2_w", _stacked(nn.initializers.variance_scaling(0.1, "fan_in", "normal"), n), (n, h, out)),
+        ]
+        self.attr_b = [
+            self.param("attr0_b", zeros, (n, h)),
+            self.param("attr1_b", zeros, (n, h)),
+            self.param("attr2_b", zeros, (n, out)),
+        ]
+
+    # ------------------------------------------------------------------ recurrence
+    def map_gates(self, map_raster):
+        """Map share of ConvLSTM layer 1's input gates (with its bias): [B,H,W,Cm] -> [B,H,W,4h]."""
+        if not self.cfg.map_channels:
+            b, hh, ww, _ = map_raster.shape
+            return jnp.broadcast_to(self.lstm1_b, (b, hh, ww, 4 * self.cfg.hidden))
+        return conv(map_raster, self.lstm1_map, self.lstm1_b)
+
+    def actor_gates(self, actor_raster):
+        """Actor share of layer 1's input gates: [B,H,W,9] -> [B,H,W,4h] (no bias)."""
+        return conv(actor_raster, self.lstm1_act)
+
+    def recur(self, state, input_gates):
+        """One ConvLSTM step given layer 1's input gates [B,H,W,4h]; returns (state, h2)."""
+        (h1, c1), (h2, c2) = state
+        h1, c1 = lstm_gates(input_gates + conv(h1, self.lstm1_rec), c1)
+        h2, c2 = lstm_gates(conv(jnp.concatenate([h1, h2], -1), self.lstm2_w, self.lstm2_b), c2)
+        return ((h1, c1), (h2, c2)), h2
+
+    def initial_state(self, batch: int):
+        """Zero ConvLSTM state for `batch` scenes."""
+        cfg = self.cfg
+        z = jnp.zeros((batch, cfg.grid_size, cfg.grid_size, cfg.hidden), jnp.float32)
+        return ((z, z), (z, z))
+
+    # ------------------------------------------------------------------ heads
+    def features(self, h2):
+        """Backbone: [B,H,W,h] -> [B,H,W,h]."""
+        x = h2
+        for w, b, s, gb in zip(self.backbone_w, self.backbone_b, self.backbone_gs, self.backbone_gb, strict=True):
+            x = jax.nn.relu(group_norm(conv(x, w, b), self.cfg.gn_groups, s, gb))
+        return x
+
+    def class_logits(self, f):
+        """Logits over {vehicle, pedestrian, bicyclist, stop} from pooled features: [B, 4]."""
+        x = jnp.mean(f, axis=(1, 2))
+        x = jax.nn.relu(self.class_mlp[0](x))
+        x = jax.nn.relu(self.class_mlp[1](x))
+        return self.class_mlp[2](x)
+
+    def location_logits(self, f, cls):
+        """Logits over the H*W bins from the head of class `cls` [B] only: [B, H*W]."""
+        cls = jnp.clip(cls, 0, NUM_CLASSES - 1)
+
+        def one(fb, c):
+            x = fb[None]
+            for i in range(2):
+                x = conv(x, self.loc_w[i][c], self.loc_b[i][c])
+                x = jax.nn.relu(group_norm(x, self.cfg.gn_groups, self.loc_gs[i][c], self.loc_gb[i][c]))
+            x = conv(x, self.loc_w[2][c], self.loc_b[2][c])
+            return x.reshape(-1)
+
+        return jax.vmap(one)(f, cls)
+
+    def attributes(self, feat, cls):
+        """Raw (box, heading, velocity) parameters from feature vectors [B, h] for class [B]."""
+        cls = jnp.clip(cls, 0, NUM_CLASSES - 1)
+        x = feat
+        for i in range(3):
+            x = jnp.einsum("bi,bio->bo", x, self.attr_w[i][cls]) + self.attr_b[i][cls]
+            if i < 2:
+                x = jax.nn.relu(x)
+        nb, nh, _ = attribute_sizes(self.cfg.num_mixtures)
+        return x[:, :nb], x[:, nb : nb + nh], x[:, nb + nh :]
+
+    def __call__(self, map_raster, actor_raster, cls, bins):
+        """One full step from a zero state (used to initialise every parameter)."""
+        state = self.initial_state(map_raster.shape[0])
+        gates = self.map_gates(map_raster) + self.actor_gates(actor_raster)
+        _, h2 = self.recur(state, gates)
+        f = self.features(h2)
+        feat = f.reshape(f.shape[0], -1, f.shape[-1])[jnp.arange(f.shape[0]), bins]
+        return self.class_logits(f), self.location_logits(f, cls), self.attributes(feat, cls)
+
+
+def init_params(cfg: Config, key):
+    """Initial parameters (a plain PyTree) for `cfg`."""
+    net = SceneGenNet(cfg)
+    h = cfg.grid_size
+    m = jnp.zeros((1, h, h, len(cfg.map_channels)))
+    a = jnp.zeros((1, h, h, NUM_ACTOR_CHANNELS))
+    z = jnp.zeros((1,), jnp.int32)
+    return net.init(key, m, a, z, z)["params"]

@@ -1,0 +1,1 @@
+"""Losses, the jitted train step, the training loop, checkpoints and sharding."""

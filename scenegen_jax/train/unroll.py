@@ -1,0 +1,179 @@
+"""Teacher-forced unroll of the autoregressive factorisation: per-step log-likelihoods.
+
+Step t of a scene with n actors predicts actor t (t < n) or the stop token (t = n); steps
+t > n are padding. Steps run in windows of `cfg.bptt_window`: the ConvLSTM state is carried
+from window to window with its gradient cut (truncated backprop through time), and a window
+that no scene of the batch reaches is skipped (`lax.cond` on a batch-wide flag).
+
+Inside a window (the fast path):
+  * the map share of layer 1's input convolution is computed once per scene (`map_gates`),
+  * the actor shares of all the window's steps are one batched convolution (`actor_gates`),
+  * only the recurrent convolutions run inside the `lax.scan`,
+  * the backbone and the heads run batched over all steps after the scan, and the location
+    head only for the class scored at each step.
+`reference_step_terms` is the plain per-step version used to test it.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+
+from scenegen_jax.config import Config
+from scenegen_jax.distributions import TERMS, HeadOutputs, actor_log_likelihood
+from scenegen_jax.model.network import SceneGenNet, conv
+from scenegen_jax.raster.actors import draw_actor, empty_actor_raster
+from scenegen_jax.scene import STOP, Actors, Scene, bin_index
+
+
+def num_windows(cfg: Config) -> int:
+    """Windows covering the max_actors + 1 steps (the last one the stop token)."""
+    return math.ceil((cfg.max_actors + 1) / cfg.bptt_window)
+
+
+def _pad_slots(actors: Actors, n: int) -> Actors:
+    """Pads the slot axis (axis 1 of batched actors) with invalid slots to length n."""
+    pad = n - actors.cls.shape[1]
+    return jax.tree.map(lambda x: jnp.pad(x, [(0, 0), (0, pad)] + [(0, 0)] * (x.ndim - 2)), actors)
+
+
+def _step_targets(actors: Actors, n_actors, t):
+    """Targets of steps t [W] for batched actors [B, W]: (target actors, is_stop, step valid)."""
+    is_stop = t[None, :] == n_actors[:, None]
+    valid = t[None, :] <= n_actors[:, None]
+    cls = jnp.where(is_stop, STOP, actors.cls)
+    return actors.replace(cls=cls), is_stop, valid
+
+
+def head_terms(net: SceneGenNet, params, f, targets: Actors, is_stop, cfg: Config, hard_negatives):
+    """Per-term log-likelihoods from backbone features f [M, H, W, h] and targets [M]."""
+
+    def apply(method, *args):
+        return net.apply({"params": params}, *args, method=method)
+
+    cls = targets.cls
+    bins = bin_index(targets.position, cfg)
+    feat = f.reshape(f.shape[0], -1, f.shape[-1])[jnp.arange(f.shape[0]), bins]
+    box, heading, velocity = apply(SceneGenNet.attributes, feat, cls)
+    head = HeadOutputs(
+        class_logits=apply(SceneGenNet.class_logits, f),
+        location_logits=apply(SceneGenNet.location_logits, f, cls),
+        box=box,
+        heading=heading,
+        velocity=velocity,
+    )
+    ll = functools.partial(actor_log_likelihood, cfg=cfg, hard_negatives=hard_negatives)
+    return jax.vmap(ll)(head, targets, is_stop)
+
+
+def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | None):
+    """Log-likelihood terms of every step of a batch of scenes, teacher forced.
+
+    Args:
+      params: network parameters.
+      cfg: config.
+      maps: [B, H, W, Cm] map channels.
+      scene: batched Scene (actors [B, N] canonical, ego [B]).
+      hard_negatives: location normaliser size for training, None for the full softmax.
+    Returns:
+      (terms: dict name -> [B, T] log-likelihoods, zero at padding steps; step_valid [B, T];
+      step_cls [B, T] with STOP at the stop step), T = windows * cfg.bptt_window.
+    """
+    net = SceneGenNet(cfg)
+
+    def apply(method, *args):
+        return net.apply({"params": params}, *args, method=method)
+
+    b = maps.shape[0]
+    w = cfg.bptt_window
+    nwin = num_windows(cfg)
+    actors = _pad_slots(scene.actors, nwin * w)
+    n_actors = jnp.sum(scene.actors.valid, axis=1)
+    map_gates = apply(SceneGenNet.map_gates, maps)
+    draw = jax.vmap(functools.partial(draw_actor, cfg=cfg))
+    raster0 = draw(jnp.broadcast_to(empty_actor_raster(cfg), (b, *empty_actor_raster(cfg).shape)),
+                   scene.ego, jnp.ones((b,), bool))
+    state0 = net.apply({"params": params}, b, method=SceneGenNet.initial_state)
+
+    def run(state, raster, start):
+        win = jax.tree.map(lambda x: jax.lax.dynamic_slice_in_dim(x, start, w, axis=1), actors)
+
+        def add(r, a):  # the raster before actor j, then actor j drawn
+            return draw(r, a, jnp.zeros((b,), bool)), r
+
+        raster_end, rasters = jax.lax.scan(add, raster, jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), win))
+        gates = apply(SceneGenNet.actor_gates, rasters.reshape(w * b, *rasters.shape[2:]))
+        gates = gates.reshape(w, b, *gates.shape[1:])
+
+        def recur(s, g):
+            return apply(SceneGenNet.recur, s, g + map_gates)
+
+        state, h2 = jax.lax.scan(recur, state, gates)  # h2 [W, B, H, W, h]
+        f = apply(SceneGenNet.features, h2.reshape(w * b, *h2.shape[2:]))
+        t = start + jnp.arange(w)
+        targets, is_stop, valid = _step_targets(win, n_actors, t)
+        flat = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1).reshape(w * b, *x.shape[2:]), targets)
+        terms = head_terms(net, params, f, flat, jnp.swapaxes(is_stop, 0, 1).reshape(-1), cfg,
+                           hard_negatives)
+        terms = {k: jnp.swapaxes(v.reshape(w, b), 0, 1) * valid for k, v in terms.items()}
+        return (state, raster_end), terms
+
+    def skip(state, raster, start):
+        return (state, raster), {k: jnp.zeros((b, w)) for k in TERMS}
+
+    def window(carry, index):
+        state, raster = carry
+        state = jax.lax.stop_gradient(state)  # truncated BPTT: no gradient across windows
+        start = index * w
+        active = jnp.any(start <= n_actors)
+        return jax.lax.cond(active, run, skip, state, raster, start)
+
+    _, terms = jax.lax.scan(window, (state0, raster0), jnp.arange(nwin))
+    terms = {k: jnp.swapaxes(v, 0, 1).reshape(b, nwin * w) for k, v in terms.items()}
+    t = jnp.arange(nwin * w)
+    step_valid = t[None] <= n_actors[:, None]
+    step_cls = jnp.where(t[None] == n_actors[:, None], STOP, actors.cls)
+    return terms, step_valid, step_cls
+
+
+def reference_step_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | None):
+    """The same terms computed the obvious way: a Python loop over steps, each step a full
+    ConvLSTM step on the concatenated input (map ++ actors ++ h1); for tests only."""
+    net = SceneGenNet(cfg)
+
+    def apply(method, *args):
+        return net.apply({"params": params}, *args, method=method)
+
+    b = maps.shape[0]
+    w_in = jnp.concatenate(
+        ([params["lstm1_map"]] if cfg.map_channels else [])
+        + [params["lstm1_act"], params["lstm1_rec"]],
+        axis=2,
+    )
+    n_actors = jnp.sum(scene.actors.valid, axis=1)
+    steps = int(jnp.max(n_actors)) + 1
+    actors = _pad_slots(scene.actors, max(steps, scene.actors.cls.shape[1]))
+    raster = jax.vmap(functools.partial(draw_actor, cfg=cfg))(
+        jnp.zeros((b, cfg.grid_size, cfg.grid_size, 9)), scene.ego, jnp.ones((b,), bool))
+    state = apply(SceneGenNet.initial_state, b)
+    out = {k: [] for k in TERMS}
+    for t in range(steps):
+        (h1, c1), (h2, c2) = state
+        x = jnp.concatenate([maps, raster, h1], axis=-1)
+        from scenegen_jax.model.network import lstm_gates
+
+        h1, c1 = lstm_gates(conv(x, w_in, params["lstm1_b"]), c1)
+        h2, c2 = lstm_gates(conv(jnp.concatenate([h1, h2], -1), params["lstm2_w"], params["lstm2_b"]), c2)
+        state = ((h1, c1), (h2, c2))
+        f = apply(SceneGenNet.features, h2)
+        a = jax.tree.map(lambda x: x[:, t], actors)
+        is_stop = n_actors == t
+        target = a.replace(cls=jnp.where(is_stop, STOP, a.cls))
+        terms = head_terms(net, params, f, target, is_stop, cfg, hard_negatives)
+        for k in TERMS:
+            out[k].append(terms[k] * (t <= n_actors))
+        raster = jax.vmap(functools.partial(draw_actor, cfg=cfg))(raster, a, jnp.zeros((b,), bool))
+    return {k: jnp.stack(v, axis=1) for k, v in out.items()}
