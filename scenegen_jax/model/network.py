@@ -39,6 +39,23 @@ def conv(x, w, b=None):
     return y if b is None else y + b
 
 
+def conv_per_example(x, w, b):
+    """'SAME' convolution with a different kernel per example: x [M, H, W, Ci],
+    w [M, kh, kw, Ci, Co], b [M, Co].
+
+    Written as a sum of shifted batched matmuls: XLA:CPU's vmapped (grouped) convolution has a
+    pathologically slow weight gradient, while batched matmuls differentiate efficiently.
+    """
+    kh, kw = w.shape[1:3]
+    h, wd = x.shape[1:3]
+    xp = jnp.pad(x, ((0, 0), (kh // 2, kh // 2), (kw // 2, kw // 2), (0, 0)))
+    out = b[:, None, None, :]
+    for dy in range(kh):
+        for dx in range(kw):
+            out = out + jnp.einsum("mhwi,mio->mhwo", xp[:, dy : dy + h, dx : dx + wd], w[:, dy, dx])
+    return out
+
+
 def group_norm(x, groups: int, scale, bias, eps: float = 1e-5):
     """GroupNorm over (H, W, channels of a group) of x [B, H, W, C]."""
     b, h, w, c = x.shape
@@ -169,16 +186,14 @@ class SceneGenNet(nn.Module):
     def location_logits(self, f, cls):
         """Logits over the H*W bins from the head of class `cls` [B] only: [B, H*W]."""
         cls = jnp.clip(cls, 0, NUM_CLASSES - 1)
-
-        def one(fb, c):
-            x = fb[None]
-            for i in range(2):
-                x = conv(x, self.loc_w[i][c], self.loc_b[i][c])
-                x = jax.nn.relu(group_norm(x, self.cfg.gn_groups, self.loc_gs[i][c], self.loc_gb[i][c]))
-            x = conv(x, self.loc_w[2][c], self.loc_b[2][c])
-            return x.reshape(-1)
-
-        return jax.vmap(one)(f, cls)
+        x = f
+        for i in range(2):
+            x = conv_per_example(x, self.loc_w[i][cls], self.loc_b[i][cls])
+            scale = self.loc_gs[i][cls][:, None, None, :]
+            bias = self.loc_gb[i][cls][:, None, None, :]
+            x = jax.nn.relu(group_norm(x, self.cfg.gn_groups, scale, bias))
+        x = conv_per_example(x, self.loc_w[2][cls], self.loc_b[2][cls])
+        return x.reshape(x.shape[0], -1)
 
     def attributes(self, feat, cls):
         """Raw (box, heading, velocity) parameters from feature vectors [B, h] for class [B]."""

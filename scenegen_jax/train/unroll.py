@@ -2,8 +2,12 @@
 
 Step t of a scene with n actors predicts actor t (t < n) or the stop token (t = n); steps
 t > n are padding. Steps run in windows of `cfg.bptt_window`: the ConvLSTM state is carried
-from window to window with its gradient cut (truncated backprop through time), and a window
-that no scene of the batch reaches is skipped (`lax.cond` on a batch-wide flag).
+from window to window with its gradient cut (truncated backprop through time).
+
+Loops are unrolled at trace time (a Python loop over windows, an unrolled scan over the
+steps of a window): XLA:CPU runs convolution gradients inside while loops and conditionals
+10-20x slower than at the top level (jax-ml/jax#12868), which dominated the train step.
+Every window always runs, so `cfg.max_actors` should fit the data (overflow is counted).
 
 Inside a window (the fast path):
   * the map share of layer 1's input convolution is computed once per scene (`map_gates`),
@@ -111,7 +115,7 @@ def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | 
         def recur(s, g):
             return apply(SceneGenNet.recur, s, g + map_gates)
 
-        state, h2 = jax.lax.scan(recur, state, gates)  # h2 [W, B, H, W, h]
+        state, h2 = jax.lax.scan(recur, state, gates, unroll=True)  # h2 [W, B, H, W, h]
         f = apply(SceneGenNet.features, h2.reshape(w * b, *h2.shape[2:]))
         t = start + jnp.arange(w)
         targets, is_stop, valid = _step_targets(win, n_actors, t)
@@ -121,18 +125,16 @@ def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | 
         terms = {k: jnp.swapaxes(v.reshape(w, b), 0, 1) * valid for k, v in terms.items()}
         return (state, raster_end), terms
 
-    def skip(state, raster, start):
-        return (state, raster), {k: jnp.zeros((b, w)) for k in TERMS}
-
     def window(carry, index):
         state, raster = carry
         state = jax.lax.stop_gradient(state)  # truncated BPTT: no gradient across windows
-        start = index * w
-        active = jnp.any(start <= n_actors)
-        return jax.lax.cond(active, run, skip, state, raster, start)
+        return run(state, raster, index * w)
 
-    _, terms = jax.lax.scan(window, (state0, raster0), jnp.arange(nwin))
-    terms = {k: jnp.swapaxes(v, 0, 1).reshape(b, nwin * w) for k, v in terms.items()}
+    carry, per_window = (state0, raster0), []
+    for index in range(nwin):
+        carry, terms = window(carry, index)
+        per_window.append(terms)
+    terms = {k: jnp.concatenate([t[k] for t in per_window], axis=1) for k in TERMS}
     t = jnp.arange(nwin * w)
     step_valid = t[None] <= n_actors[:, None]
     step_cls = jnp.where(t[None] == n_actors[:, None], STOP, actors.cls)

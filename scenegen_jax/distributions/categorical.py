@@ -1,0 +1,127 @@
+"""Class and location categoricals: log-likelihoods, hard negative mining, ordering mask, samplers.
+
+Per example (unbatched); vmap for batches. Location bins are row-major over the H x W
+raster (see `scenegen_jax.scene` for the grid convention); the continuous position density
+is uniform inside a bin, so log p(x, y) = log pi[bin] - log(bin_area) in nats per m^2.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jax.scipy import special
+
+from scenegen_jax.config import Config
+from scenegen_jax.scene import bin_center
+
+# Sampled positions stay this fraction of a pixel inside their bin, so float32 rounding
+# never moves them into a neighbouring bin.
+_EDGE = 1e-4
+
+
+# ----------------------------------------------------------------------------- class
+def class_log_prob(logits: jnp.ndarray, cls: jnp.ndarray) -> jnp.ndarray:
+    """Log probability of class `cls` under `logits` [4] (vehicle, pedestrian, bicyclist, stop)."""
+    return jax.nn.log_softmax(logits)[cls]
+
+
+def sample_class(key: jax.Array, logits: jnp.ndarray) -> jnp.ndarray:
+    """Draws a class id (int32; STOP = 3 ends the scene) from `logits` [4]."""
+    return jax.random.categorical(key, logits).astype(jnp.int32)
+
+
+# ----------------------------------------------------------------------------- location
+def location_log_prob(logits: jnp.ndarray, bin: jnp.ndarray, bin_area: float) -> jnp.ndarray:
+    """Log density (log 1/m^2) of a position in `bin` under the full softmax of `logits` [H*W].
+
+    Args:
+      logits: [H*W] location logits, row-major bins.
+      bin: row-major bin index of the position.
+      bin_area: area of one bin, m^2.
+    """
+    return jax.nn.log_softmax(logits)[bin] - jnp.log(bin_area)
+
+
+def hard_negative_log_prob(logits: jnp.ndarray, bin: jnp.ndarray, n: int) -> jnp.ndarray:
+    """Log probability of `bin` normalised over the `n` highest logits including `bin`.
+
+    Online hard negative mining (supplementary sec. 1.3): the positive is forced into the
+    selection, then the top `n` bins (the positive and the n - 1 hardest negatives) are
+    normalised with the true logits. With n >= H*W this is the full log softmax. Used for
+    training only; evaluation always uses the full softmax.
+
+    Args:
+      logits: [H*W] location logits.
+      bin: row-major index of the positive bin.
+      n: static number of bins in the normaliser.
+
+    Returns:
+      Scalar log probability (nats, per bin; subtract log(bin_area) for a density).
+    """
+    logits = jnp.asarray(logits)
+    n_bins = logits.shape[-1]
+    if n >= n_bins:
+        return jax.nn.log_softmax(logits)[bin]
+    forced = logits.at[bin].set(jnp.inf)
+    _, idx = jax.lax.top_k(jax.lax.stop_gradient(forced), n)
+    return logits[bin] - special.logsumexp(logits[idx])
+
+
+def ordering_mask(prev_bin: jnp.ndarray, n_bins: int) -> jnp.ndarray:
+    """bool [n_bins]: bins allowed after an actor in `prev_bin` (canonical order, ties allowed).
+
+    Bins before `prev_bin` are excluded (they get -inf logits); prev_bin = 0 allows all,
+    prev_bin >= n_bins allows none.
+    """
+    return jnp.arange(n_bins) >= prev_bin
+
+
+def masked_log_softmax(logits: jnp.ndarray, mask: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """Log softmax renormalised over `mask`; -inf outside it.
+
+    Returns:
+      (log_probs [n], any_valid). When no bin is allowed every entry is -inf and any_valid
+      is False; values and gradients stay free of NaN.
+    """
+    log_z = special.logsumexp(jnp.where(mask, logits, -jnp.inf))  # -inf (no NaN) if empty
+    return jnp.where(mask, logits - log_z, -jnp.inf), jnp.any(mask)
+
+
+def masked_location_log_prob(
+    logits: jnp.ndarray, mask: jnp.ndarray, bin: jnp.ndarray, bin_area: float
+) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """Log density (log 1/m^2) of `bin` under the location categorical restricted to `mask`.
+
+    Returns:
+      (log_prob, any_valid); log_prob is -inf for a bin outside the mask or when the mask
+      allows no bin (then any_valid is False).
+    """
+    log_probs, any_valid = masked_log_softmax(logits, mask)
+    return log_probs[bin] - jnp.log(bin_area), any_valid
+
+
+def sample_location(
+    key: jax.Array, logits: jnp.ndarray, cfg: Config, mask: jnp.ndarray | None = None
+) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
+    """Draws a location bin from `logits` [H*W] (restricted to `mask`), then a position in it.
+
+    Args:
+      key: PRNG key.
+      logits: [H*W] location logits, row-major bins.
+      cfg: config (grid_size, m_per_px).
+      mask: optional bool [H*W] of allowed bins (e.g. `ordering_mask`).
+
+    Returns:
+      (bin int32, position [2] (x, y) m uniform inside the bin, any_valid). If the mask
+      allows no bin, bin is the last bin H*W - 1 and any_valid is False (callers stop).
+    """
+    n_bins = logits.shape[-1]
+    if mask is None:
+        mask = jnp.ones((n_bins,), bool)
+    k_bin, k_pos = jax.random.split(key)
+    log_probs, any_valid = masked_log_softmax(logits, mask)
+    bin_ = jax.random.categorical(k_bin, jnp.where(any_valid, log_probs, 0.0))
+    bin_ = jnp.where(any_valid, bin_, n_bins - 1).astype(jnp.int32)
+    u = jax.random.uniform(k_pos, (2,), minval=_EDGE, maxval=1.0 - _EDGE)
+    offset = (u - 0.5) * cfg.m_per_px
+    return bin_, bin_center(bin_, cfg) + offset, any_valid

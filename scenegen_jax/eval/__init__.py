@@ -1,0 +1,1 @@
+"""Likelihood scoring of real scenes, realism metrics and baselines."""

@@ -1,0 +1,135 @@
+"""The training driver: data order, sharded steps, progress bar, metrics file, checkpoints."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import sys
+import time
+
+import jax
+import numpy as np
+from jax.sharding import NamedSharding
+from jax.sharding import PartitionSpec as P
+from tqdm import tqdm
+
+from scenegen_jax.config import Config
+from scenegen_jax.data.cache import load_cache
+from scenegen_jax.distributions import TERMS
+from scenegen_jax.scene import CLASS_NAMES
+from scenegen_jax.train.checkpoint import Checkpointer
+from scenegen_jax.train.data import batch_indices, gather_batch, to_device
+from scenegen_jax.train.step import TrainState, check_batch, init_state, make_mesh, make_train_step
+
+log = logging.getLogger(__name__)
+CONFIG_FILE = "config.json"
+
+
+def save_or_check_config(workdir: str, cfg: Config) -> None:
+    """Writes the resolved config beside the checkpoints; a resume must use the same one."""
+    os.makedirs(workdir, exist_ok=True)
+    path = os.path.join(workdir, CONFIG_FILE)
+    if os.path.exists(path):
+        with open(path) as f:
+            saved = Config.from_json(f.read())
+        if saved != cfg:
+            raise ValueError(
+                f"{path}: this workdir was trained with a different config; use a new --workdir "
+                f"or the same config and overrides"
+            )
+        return
+    with open(path, "w") as f:
+        f.write(cfg.to_json())
+
+
+def load_workdir_config(workdir: str) -> Config:
+    """The config a workdir was trained with."""
+    path = os.path.join(workdir, CONFIG_FILE)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"{path}: not a training workdir (no {CONFIG_FILE})")
+    with open(path) as f:
+        return Config.from_json(f.read())
+
+
+def summarize(stats: dict) -> dict:
+    """Host-side metrics from summed stats: loss, NLL per scene by term, per actor by class."""
+    scenes = max(float(stats["scenes"]), 1.0)
+    out = {"loss": float(stats["loss"]) / float(stats["batches"])}
+    out.update({f"nll_{k}": float(stats[f"nll_{k}"]) / scenes for k in TERMS})
+    for name in CLASS_NAMES:
+        count = float(stats[f"count_{name}"])
+        out[f"nll_per_{name}"] = float(stats[f"nll_sum_{name}"]) / count if count else None
+    out["nll_stop"] = float(stats["nll_sum_stop"]) / scenes
+    return out
+
+
+def train(
+    cfg: Config,
+    data_dir: str,
+    workdir: str,
+    steps: int,
+    save_every: int = 100,
+    log_every: int = 10,
+    keep: int = 3,
+    progress: bool = True,
+    max_seconds: float | None = None,
+) -> TrainState:
+    """Trains until `steps` total steps (or `max_seconds` of wall time), resuming from
+    `workdir`'s latest checkpoint; the last state is always saved."""
+    cache = load_cache(data_dir)
+    cache.check_config(cfg)
+    save_or_check_config(workdir, cfg)
+    mesh = make_mesh()
+    step_fn = make_train_step(cfg, mesh)
+    data_sharding = NamedSharding(mesh, P("data"))
+    ckpt = Checkpointer(os.path.join(workdir, "checkpoints"), save_every, keep)
+    state = init_state(cfg)
+    restored = ckpt.restore_latest(state)
+    if restored is not None:
+        state = restored
+    state = jax.device_put(state, NamedSharding(mesh, P()))
+    start = int(state.step)
+    metrics_path = os.path.join(workdir, "metrics.jsonl")
+    bar = tqdm(total=steps, initial=start, desc="train", unit="step", file=sys.stderr,
+               disable=not progress)
+    acc, t0, n0 = None, time.perf_counter(), start
+    t_start = t0
+    for step in range(start, steps):
+        indices = batch_indices(len(cache), cfg.batch_size, cfg.seed, step)
+        host = gather_batch(cache, indices, cfg)
+        check_batch(host, [cache.scene_ids[i] for i in indices])
+        state, stats = step_fn(state, to_device(host, data_sharding))
+        stats = {**stats, "batches": 1}
+        acc = stats if acc is None else jax.tree.map(lambda a, b: a + b, acc, stats)
+        done = step + 1
+        if done % log_every == 0 or done == steps:
+            acc = jax.device_get(acc)
+            if not np.isfinite(float(acc["loss"])):
+                raise FloatingPointError(f"step {done}: loss is {float(acc['loss'])}; stopping")
+            elapsed = time.perf_counter() - t0
+            row = {"step": done, **summarize(acc), "steps_per_s": (done - n0) / elapsed}
+            with open(metrics_path, "a") as f:
+                f.write(json.dumps(row) + "\n")
+            bar.set_postfix(loss=f"{row['loss']:.2f}", steps_s=f"{row['steps_per_s']:.2f}")
+            acc, t0, n0 = None, time.perf_counter(), done
+        out_of_time = max_seconds is not None and time.perf_counter() - t_start > max_seconds
+        ckpt.save(state, force=done == steps or out_of_time)
+        bar.update(1)
+        if out_of_time:
+            log.info("time budget of %.0f s used after step %d; stopping", max_seconds, done)
+            break
+    bar.close()
+    ckpt.close()
+    return state
+
+
+def load_trained(workdir: str) -> tuple[Config, TrainState]:
+    """(config, latest readable train state) of a training workdir."""
+    cfg = load_workdir_config(workdir)
+    ckpt = Checkpointer(os.path.join(workdir, "checkpoints"), every=1)
+    state = ckpt.restore_latest(init_state(cfg))
+    ckpt.close()
+    if state is None:
+        raise FileNotFoundError(f"{workdir}/checkpoints: no readable checkpoint")
+    return cfg, state

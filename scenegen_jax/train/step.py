@@ -1,0 +1,154 @@
+"""Loss, optimizer, train state and the jitted (optionally sharded) train step."""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
+
+from scenegen_jax.config import Config
+from scenegen_jax.distributions import TERMS
+from scenegen_jax.model.network import init_params
+from scenegen_jax.raster.transform import scene_from_cached
+from scenegen_jax.scene import CLASS_NAMES, STOP, Actors
+from scenegen_jax.train.unroll import unroll_terms
+
+
+class TrainState(NamedTuple):
+    """Everything a resumed run needs; arrays only, so it goes straight into orbax.
+
+    step: int32 [] steps taken (also the data position: batch i is a pure function of i).
+    params: network parameters.
+    opt_state: optimizer state.
+    key: uint32 [2] raw base key; step keys are fold_in(key, step).
+    """
+
+    step: jnp.ndarray
+    params: Any
+    opt_state: Any
+    key: jnp.ndarray
+
+
+class Batch(NamedTuple):
+    """A batch as read from the cache (before rotation and cropping).
+
+    canvas: float16 [B, S, S, C_all] map canvases; actors: Actors [B, A]; ego: Actors [B].
+    """
+
+    canvas: Any
+    actors: Actors
+    ego: Actors
+
+
+def make_optimizer(cfg: Config) -> optax.GradientTransformation:
+    """Adam with optional global-norm clipping."""
+    adam = optax.adam(cfg.learning_rate)
+    if cfg.grad_clip > 0:
+        return optax.chain(optax.clip_by_global_norm(cfg.grad_clip), adam)
+    return adam
+
+
+def init_state(cfg: Config, seed: int | None = None) -> TrainState:
+    """Fresh train state from `seed` (default cfg.seed)."""
+    key = jax.random.key(cfg.seed if seed is None else seed)
+    init_key, base = jax.random.split(key)
+    params = init_params(cfg, init_key)
+    return TrainState(
+        step=jnp.zeros((), jnp.int32),
+        params=params,
+        opt_state=make_optimizer(cfg).init(params),
+        key=jax.random.key_data(base),
+    )
+
+
+def crop_batch(batch: Batch, thetas, cfg: Config):
+    """Rotates each cached scene by thetas [B] rad and crops it: (maps [B,H,W,C], scene)."""
+    maps, scene, _ = jax.vmap(lambda c, a, e, t: scene_from_cached(c, a, e, t, cfg))(
+        batch.canvas, batch.actors, batch.ego, thetas
+    )
+    return maps, scene
+
+
+def nll_metrics(terms: dict, step_valid, step_cls) -> tuple[jnp.ndarray, dict]:
+    """Scene NLLs [B] and summed statistics for logging (sums and counts, not means)."""
+    total = sum(terms[k] for k in TERMS)  # [B, T] log-likelihood per step
+    scene_nll = -jnp.sum(total, axis=1)
+    stats = {f"nll_{k}": -jnp.sum(terms[k]) for k in TERMS}
+    for c, name in enumerate(CLASS_NAMES):
+        m = step_valid & (step_cls == c)
+        stats[f"nll_sum_{name}"] = -jnp.sum(jnp.where(m, total, 0.0))
+        stats[f"count_{name}"] = jnp.sum(m)
+    stats["nll_sum_stop"] = -jnp.sum(jnp.where(step_cls == STOP, total, 0.0) * step_valid)
+    stats["scenes"] = jnp.asarray(scene_nll.shape[0])
+    return scene_nll, stats
+
+
+def loss_fn(params, cfg: Config, maps, scene):
+    """Mean scene NLL (nats) with the hard-negative location normaliser, and stats."""
+    terms, step_valid, step_cls = unroll_terms(params, cfg, maps, scene, cfg.hard_negatives)
+    scene_nll, stats = nll_metrics(terms, step_valid, step_cls)
+    return jnp.mean(scene_nll), stats
+
+
+def train_step(state: TrainState, batch: Batch, cfg: Config) -> tuple[TrainState, dict]:
+    """One optimizer step on a batch (pure; jit it with `make_train_step`)."""
+    key = jax.random.fold_in(jax.random.wrap_key_data(state.key), state.step)
+    b = batch.actors.cls.shape[0]
+    if cfg.rotate_augment:
+        thetas = jax.random.uniform(key, (b,), maxval=2 * jnp.pi)
+    else:
+        thetas = jnp.zeros((b,))
+    maps, scene = crop_batch(batch, thetas, cfg)
+    (loss, stats), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params, cfg, maps, scene)
+    updates, opt_state = make_optimizer(cfg).update(grads, state.opt_state, state.params)
+    params = optax.apply_updates(state.params, updates)
+    stats = {**stats, "loss": loss, "grad_norm": optax.global_norm(grads)}
+    return TrainState(state.step + 1, params, opt_state, state.key), stats
+
+
+def make_mesh(devices=None) -> Mesh:
+    """A 1-D mesh with a `data` axis over all local (or given) devices."""
+    devices = np.asarray(jax.devices() if devices is None else devices)
+    return Mesh(devices, ("data",))
+
+
+def make_train_step(cfg: Config, mesh: Mesh | None = None):
+    """The jitted train step; with a mesh, the batch is sharded over `data` and the state
+    replicated. The state argument is donated."""
+    fn = lambda state, batch: train_step(state, batch, cfg)  # noqa: E731
+    if mesh is None:
+        return jax.jit(fn, donate_argnums=0)
+    if cfg.batch_size % mesh.size:
+        raise ValueError(f"batch_size {cfg.batch_size} is not divisible by {mesh.size} devices")
+    replicated = NamedSharding(mesh, P())
+    data = NamedSharding(mesh, P("data"))
+    return jax.jit(
+        fn,
+        in_shardings=(replicated, data),
+        out_shardings=(replicated, replicated),
+        donate_argnums=0,
+    )
+
+
+def check_batch(batch: Batch, scene_ids: list[str]) -> None:
+    """Host-side guard: raises ValueError naming the scene and field on NaN/inf input."""
+    fields = {
+        "canvas": batch.canvas,
+        "actors.position": batch.actors.position,
+        "actors.size": batch.actors.size,
+        "actors.heading": batch.actors.heading,
+        "actors.velocity": batch.actors.velocity,
+        "ego.velocity": batch.ego.velocity,
+        "ego.size": batch.ego.size,
+    }
+    for name, value in fields.items():
+        value = np.asarray(value)
+        bad = ~np.isfinite(value.reshape(value.shape[0], -1)).all(axis=1)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise ValueError(f"scene {scene_ids[i]}: field {name}: NaN or inf in the batch")
