@@ -1,0 +1,228 @@
+"""Network unroll, train step, checkpoints and sharding on real scenes (tiny config)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from scenegen_jax.config import get_config
+from scenegen_jax.model.network import init_params
+from scenegen_jax.train.data import batch_indices, gather_batch
+from scenegen_jax.train.step import (
+    Batch,
+    check_batch,
+    crop_batch,
+    init_state,
+    loss_fn,
+    make_train_step,
+    train_step,
+)
+from scenegen_jax.train.unroll import reference_step_terms, unroll_terms
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+# Small enough to compile quickly: scenes of the fixture with <= 15 actors in the region.
+CFG = get_config("tiny").replace(max_actors=15, bptt_window=8, batch_size=2, hidden=8,
+                                 gn_groups=2, rotate_augment=False, learning_rate=3e-3)
+
+
+@pytest.fixture(scope="module")
+def small_scenes(tiny_train_cache):
+    pos = tiny_train_cache.actors.position
+    inside = tiny_train_cache.actors.valid & (np.abs(pos) < CFG.region_m / 2).all(-1)
+    few = np.flatnonzero(inside.sum(1) <= CFG.max_actors)
+    assert len(few) >= 2
+    return few[:2]
+
+
+def _batch(cache, idx):
+    return gather_batch(cache, np.asarray(idx), CFG)
+
+
+def test_fast_unroll_equals_plain_reference(tiny_train_cache, small_scenes):
+    cfg = CFG.replace(bptt_window=16)  # one window: the reference has no truncation either
+    params = init_params(cfg, jax.random.key(1))
+    maps, scene = crop_batch(_batch(tiny_train_cache, small_scenes), jnp.array([0.0, 1.0]), cfg)
+    fast, valid, _ = jax.jit(lambda p: unroll_terms(p, cfg, maps, scene, None))(params)
+    ref = reference_step_terms(params, cfg, maps, scene, None)
+    steps = ref["class"].shape[1]
+    for k, v in ref.items():
+        np.testing.assert_allclose(np.asarray(fast[k])[:, :steps], v, rtol=2e-4, atol=2e-3)
+        assert np.all(np.asarray(fast[k])[:, steps:] == 0)
+
+    def fast_loss(p):
+        t, _, _ = unroll_terms(p, cfg, maps, scene, 64)
+        return -sum(jnp.sum(v) for v in t.values())
+
+    def ref_loss(p):
+        return -sum(jnp.sum(v) for v in reference_step_terms(p, cfg, maps, scene, 64).values())
+
+    g_fast = jax.grad(fast_loss)(params)
+    g_ref = jax.grad(ref_loss)(params)
+    # float32 sums over hundreds of terms in another order: tolerances relative to the scale
+    # of the gradient (the location bias is softmax-invariant: its exact gradient is 0).
+    scale = max(float(np.abs(b).max()) for b in jax.tree.leaves(g_ref))
+    for a, b in zip(jax.tree.leaves(g_fast), jax.tree.leaves(g_ref), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-2, atol=1e-4 * scale)
+
+
+def test_truncation_cuts_gradients_between_windows(tiny_train_cache, small_scenes):
+    params = init_params(CFG, jax.random.key(2))
+    maps, scene = crop_batch(_batch(tiny_train_cache, small_scenes), jnp.zeros(2), CFG)
+
+    def window_loss(p, lo, hi):
+        t, _, _ = unroll_terms(p, CFG, maps, scene, None)
+        return -jnp.sum(t["class"][:, lo:hi])
+
+    w = CFG.bptt_window
+    # The second window's loss depends on the first window's inputs only through the state,
+    # whose gradient is cut: its gradient w.r.t. the recurrent weights comes from window 2 only.
+    g2 = jax.grad(window_loss)(params, w, 2 * w)
+    g1 = jax.grad(window_loss)(params, 0, w)
+    assert np.all(np.isfinite(np.asarray(g2["lstm1_rec"])))
+    assert not np.allclose(g1["lstm1_rec"], g2["lstm1_rec"])
+    # Every step of both windows contributes: the second window's terms are non-zero.
+    t, valid, _ = unroll_terms(params, CFG, maps, scene, None)
+    assert np.all(np.asarray(t["class"])[np.asarray(valid)] != 0)
+
+
+def test_overfit_two_real_scenes(tiny_train_cache, small_scenes):
+    batch = jax.device_put(_batch(tiny_train_cache, small_scenes))
+    state = init_state(CFG)
+    step = make_train_step(CFG)
+    losses = []
+    for _ in range(60):
+        state, stats = step(state, batch)
+        losses.append(float(stats["loss"]))
+    assert np.all(np.isfinite(losses))
+    assert losses[-1] < 0.5 * losses[0], losses[::10]
+
+
+def test_train_step_compiles_once(tiny_train_cache):
+    traces = []
+
+    def counted(state, batch):
+        traces.append(1)
+        return train_step(state, batch, CFG)
+
+    step = jax.jit(counted, donate_argnums=0)
+    state = init_state(CFG)
+    for i in range(3):
+        idx = batch_indices(len(tiny_train_cache), CFG.batch_size, CFG.seed, i)
+        state, _ = step(state, jax.device_put(_batch(tiny_train_cache, idx)))
+    assert len(traces) == 1
+
+
+def test_empty_scene_is_one_stop_step(tiny_train_cache, small_scenes):
+    batch = _batch(tiny_train_cache, small_scenes)
+    empty = batch.actors.replace(valid=np.zeros_like(batch.actors.valid))
+    batch = Batch(batch.canvas, empty, batch.ego)
+    params = init_params(CFG, jax.random.key(3))
+    maps, scene = crop_batch(batch, jnp.zeros(2), CFG)
+    terms, valid, cls = unroll_terms(params, CFG, maps, scene, CFG.hard_negatives)
+    assert np.asarray(valid).sum(1).tolist() == [1, 1]
+    assert np.asarray(cls)[:, 0].tolist() == [3, 3]
+    for k in ("location", "box", "heading", "velocity"):
+        assert np.all(np.asarray(terms[k]) == 0)
+    (loss, _), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, CFG, maps, scene)
+    assert np.isfinite(float(loss)) and float(loss) > 0
+    assert all(np.all(np.isfinite(g)) for g in jax.tree.leaves(grads))
+
+
+def test_nan_batch_is_rejected_before_the_optimizer(tiny_train_cache, small_scenes):
+    batch = _batch(tiny_train_cache, small_scenes)
+    batch.actors.velocity[1, 0, 0] = np.nan
+    with pytest.raises(ValueError, match=r"scene b/.*actors\.velocity"):
+        check_batch(batch, ["a/1", "b/2"])
+
+
+# ------------------------------------------------------------ subprocess tests
+
+
+def _train_cmd(cache, workdir, steps):
+    overrides = ["max_actors=15", "bptt_window=8", "batch_size=2", "hidden=8", "gn_groups=2"]
+    return [sys.executable, "-m", "scenegen_jax.cli", "train", "--config", "tiny", "--data", cache,
+            "--workdir", workdir, "--steps", str(steps), "--save-every", "2", "--log-every", "2",
+            "--set", *overrides]
+
+
+def _params(workdir):
+    from scenegen_jax.train.loop import load_trained
+
+    cfg, state = load_trained(workdir)
+    return int(state.step), jax.tree.leaves(state.params)
+
+
+@pytest.mark.slow
+def test_killed_run_resumes_exactly(tiny_train_cache, tmp_path):
+    cache = tiny_train_cache.path
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    steps = 10
+    full = str(tmp_path / "full")
+    subprocess.run(_train_cmd(cache, full, steps), check=True, env=env, capture_output=True)
+
+    killed = str(tmp_path / "killed")
+    proc = subprocess.Popen(_train_cmd(cache, killed, steps), env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    ckpts = os.path.join(killed, "checkpoints")
+    deadline = time.time() + 300
+    while time.time() < deadline:
+        done = [d for d in os.listdir(ckpts)] if os.path.isdir(ckpts) else []
+        if any(d.isdigit() and int(d) >= 4 for d in done):
+            break
+        time.sleep(0.2)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert proc.returncode == -signal.SIGKILL
+    step_at_kill, _ = _params(killed)
+    assert 4 <= step_at_kill < steps
+    subprocess.run(_train_cmd(cache, killed, steps), check=True, env=env, capture_output=True)
+
+    s_full, p_full = _params(full)
+    s_killed, p_killed = _params(killed)
+    assert s_full == s_killed == steps
+    for a, b in zip(p_full, p_killed, strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-6, rtol=0)
+
+
+@pytest.mark.slow
+def test_sharded_step_equals_single_device(tiny_train_cache):
+    script = f"""
+import jax, numpy as np
+from scenegen_jax.config import get_config
+from scenegen_jax.data.cache import load_cache
+from scenegen_jax.train.data import gather_batch, to_device
+from scenegen_jax.train.step import init_state, make_mesh, make_train_step
+from jax.sharding import NamedSharding, PartitionSpec as P
+assert jax.device_count() == 8, jax.devices()
+cfg = get_config("tiny").replace(max_actors=15, bptt_window=8, batch_size=8, hidden=8, gn_groups=2)
+cache = load_cache({tiny_train_cache.path!r})
+host = gather_batch(cache, np.arange(8), cfg)
+out = []
+for mesh in (make_mesh(jax.devices()[:1]), make_mesh()):
+    step = make_train_step(cfg, mesh)
+    state = jax.device_put(init_state(cfg), NamedSharding(mesh, P()))
+    batch = to_device(host, NamedSharding(mesh, P("data")))
+    assert len(batch.canvas.sharding.device_set) == mesh.size
+    state, stats = step(state, batch)
+    out.append((float(stats["loss"]), float(stats["grad_norm"]), jax.device_get(state.params)))
+np.testing.assert_allclose(out[0][:2], out[1][:2], rtol=1e-4)
+# Adam turns float noise in near-zero gradients into steps of up to lr = 1e-3: compare the
+# parameters to a tenth of that.
+for a, b in zip(jax.tree.leaves(out[0][2]), jax.tree.leaves(out[1][2])):
+    np.testing.assert_allclose(a, b, atol=1e-4, rtol=0)
+print("OK", out[0][0], out[1][0])
+"""
+    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=8",
+           "JAX_PLATFORMS": "cpu"}
+    res = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True,
+                         cwd=REPO)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "OK" in res.stdout
