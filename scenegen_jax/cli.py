@@ -68,8 +68,15 @@ def cmd_render(args) -> None:
         theta = np.deg2rad(args.rotate)
         map_raster, scene, _ = scene_from_cached(canvas, actors, ego, theta, cfg)
         out = args.out if len(indices) == 1 else _numbered(args.out, n, index)
-        render_scene(out, np.asarray(map_raster), cfg.map_channels, scene.actors, scene.ego, cfg,
-                     title=f"{cache.scene_ids[index]}  ({int(np.sum(scene.actors.valid))} actors)")
+        render_scene(
+            out,
+            np.asarray(map_raster),
+            cfg.map_channels,
+            scene.actors,
+            scene.ego,
+            cfg,
+            title=f"{cache.scene_ids[index]}  ({int(np.sum(scene.actors.valid))} actors)",
+        )
         print(out)
 
 
@@ -86,9 +93,16 @@ def cmd_train(args) -> None:
         import jax
 
         jax.distributed.initialize()
-    train(cfg, args.data, args.workdir, args.steps, save_every=args.save_every,
-          log_every=args.log_every, keep=args.keep,
-          max_seconds=args.minutes * 60 if args.minutes else None)
+    train(
+        cfg,
+        args.data,
+        args.workdir,
+        args.steps,
+        save_every=args.save_every,
+        log_every=args.log_every,
+        keep=args.keep,
+        max_seconds=args.minutes * 60 if args.minutes else None,
+    )
     print(json.dumps({"workdir": args.workdir, "steps": args.steps}))
 
 
@@ -113,16 +127,209 @@ def cmd_score(args) -> None:
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w", newline="") as f:
         writer = csv.writer(f)
-        writer.writerow(["index", "scene_id", "actors", "scene_nll", "nll_per_actor",
-                         *[f"{k}_nll" for k in TERMS]])
+        writer.writerow(
+            [
+                "index",
+                "scene_id",
+                "actors",
+                "scene_nll",
+                "nll_per_actor",
+                *[f"{k}_nll" for k in TERMS],
+            ]
+        )
         for i, sid in enumerate(cache.scene_ids):
             per_actor = total[i].sum() / max(n_actors[i], 1)
-            writer.writerow([i, sid, int(n_actors[i]), f"{total[i].sum():.4f}", f"{per_actor:.4f}",
-                             *[f"{scores[k][i].sum():.4f}" for k in TERMS]])
+            writer.writerow(
+                [
+                    i,
+                    sid,
+                    int(n_actors[i]),
+                    f"{total[i].sum():.4f}",
+                    f"{per_actor:.4f}",
+                    *[f"{scores[k][i].sum():.4f}" for k in TERMS],
+                ]
+            )
     summary = summarize_scores(scores)
     print(json.dumps({"out": args.out, **summary}))
     if args.actors_out:
         np.savez(args.actors_out, **scores)
+
+
+def cmd_sample(args) -> None:
+    """Samples scenes on the maps and egos of cache scenes; writes JSON lines, ScenarioNet
+    pickles, PNGs and (with --heatmaps) per-step location heatmaps."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from scenegen_jax.data.cache import load_cache
+    from scenegen_jax.data.scenarionet import scenario_from_frame, write_dataset
+    from scenegen_jax.raster.transform import crop_map
+    from scenegen_jax.sampling import (
+        HEATMAP_STEPS,
+        STOP_REASONS,
+        actor_records,
+        actors_from_records,
+        batch_inputs,
+        frame_from_sample,
+        sample_batch,
+    )
+    from scenegen_jax.scene import CLASS_NAMES, NUM_CLASSES, Actors
+    from scenegen_jax.train.loop import load_trained
+    from scenegen_jax.viz.heatmap import render_heatmaps
+    from scenegen_jax.viz.render import render_scene
+
+    if args.num < 1 or args.batch_size < 1:
+        raise SystemExit("--num and --batch-size must be >= 1")
+    if args.proposals is not None and args.proposals < 1:
+        raise SystemExit("--proposals must be >= 1")
+    cfg, state = load_trained(args.workdir)
+    cache = load_cache(args.data)
+    cache.check_config(cfg)
+    indices = list(args.index) if args.index else list(range(len(cache)))
+    for i in indices:
+        if not 0 <= i < len(cache):
+            raise IndexError(f"{cache.path}: --index {i} out of range [0, {len(cache)})")
+    given_lines = []
+    if args.given:
+        with open(args.given) as f:
+            for line_no, line in enumerate(f, 1):
+                if not line.strip():
+                    continue
+                where = f"{args.given}:{line_no}"
+                try:
+                    row = json.loads(line)
+                except json.JSONDecodeError as e:
+                    raise ValueError(f"{where}: not JSON ({e})") from e
+                if not isinstance(row, dict) or "actors" not in row:
+                    raise ValueError(f'{where}: actors: missing (expected {{"actors": [...]}})')
+                given_lines.append(actors_from_records(row["actors"], cfg, where))
+        if not given_lines:
+            raise ValueError(f"{args.given}: no given scenes")
+    caps = np.full(NUM_CLASSES, cfg.max_actors, np.int32)
+    for pair in args.cap or []:
+        name, _, value = pair.partition("=")
+        if name not in CLASS_NAMES or not value.isdigit():
+            raise SystemExit(f"--cap {pair!r}: expected CLASS=N with CLASS in {CLASS_NAMES}")
+        caps[CLASS_NAMES.index(name)] = int(value)
+
+    out = os.path.abspath(args.out)
+    for sub_dir in ("png", "scenarionet") + (("heatmaps",) if args.heatmaps else ()):
+        os.makedirs(os.path.join(out, sub_dir), exist_ok=True)
+    crop = jax.jit(crop_map, static_argnums=2)
+    map_cache: dict[int, np.ndarray] = {}
+
+    def map_of(i: int) -> np.ndarray:
+        if i not in map_cache:
+            map_cache[i] = np.asarray(crop(jnp.asarray(cache.maps[i]), 0.0, cfg))
+        return map_cache[i]
+
+    def ego_of(i: int) -> Actors:
+        return Actors(
+            cls=np.int32(0),
+            position=np.zeros(2, np.float32),
+            size=cache.ego_size[i].astype(np.float32),
+            heading=np.float32(0.0),
+            velocity=cache.ego_velocity[i].astype(np.float32),
+            valid=np.bool_(True),
+        )
+
+    key = jax.random.key(args.seed)
+    steps = HEATMAP_STEPS if args.heatmaps else ()
+    scenarios, counts = [], np.zeros(NUM_CLASSES, np.int64)
+    b = args.batch_size
+    with (
+        open(os.path.join(out, "scenes.jsonl"), "w") as jsonl,
+        tqdm(total=args.num, desc="sample", unit="scene", file=sys.stderr) as bar,
+    ):
+        for start in range(0, args.num, b):
+            # Scene k uses key fold_in(seed key, k): results do not depend on --batch-size.
+            ks = np.minimum(np.arange(start, start + b), args.num - 1)
+            map_ids = [indices[k % len(indices)] for k in ks]
+            egos = jax.tree.map(lambda *x: np.stack(x), *[ego_of(i) for i in map_ids])
+            given, batch_caps = batch_inputs(cfg, b, None, caps)
+            if given_lines:
+                rows = [given_lines[k % len(given_lines)] for k in ks]
+                given = jax.tree.map(lambda *x: np.stack(x), *rows)
+            keys = jax.vmap(lambda k: jax.random.fold_in(key, k))(jnp.asarray(ks))[:, None]
+            sample = sample_batch(
+                keys,
+                state.params,
+                np.stack([map_of(i) for i in map_ids]),
+                egos,
+                given,
+                batch_caps,
+                cfg=cfg,
+                proposals=args.proposals,
+                heatmap_steps=steps,
+            )
+            sample = jax.device_get(jax.tree.map(lambda x: x[:, 0], sample))
+            for j, k in enumerate(ks[: args.num - start]):
+                k, i = int(k), map_ids[j]
+                actors = jax.tree.map(lambda x, j=j: x[j], sample.actors)
+                ego = ego_of(i)
+                scene_id = f"sample_{k:06d}"
+                records = actor_records(actors)
+                for r in records:
+                    counts[CLASS_NAMES.index(r["class"])] += 1
+                row = {
+                    "scene": scene_id,
+                    "map_index": i,
+                    "map_scene_id": cache.scene_ids[i],
+                    "seed": args.seed,
+                    "num_given": int(sample.num_given[j]),
+                    "stop_reason": STOP_REASONS[int(sample.stop_reason[j])],
+                    "rejected": int(sample.rejected[j]),
+                    "ego": {
+                        "width": float(ego.size[0]),
+                        "length": float(ego.size[1]),
+                        "vx": float(ego.velocity[0]),
+                        "vy": float(ego.velocity[1]),
+                    },
+                    "actors": records,
+                }
+                jsonl.write(json.dumps(row) + "\n")
+                frame = frame_from_sample(
+                    actors, ego, cache.scene_ids[i], city_from_ego=cache.city_from_ego[i]
+                )
+                scenarios.append(scenario_from_frame(frame, scene_id))
+                title = (
+                    f"{scene_id} on {cache.scene_ids[i]}  ({len(records)} actors, "
+                    f"{row['num_given']} given)"
+                )
+                render_scene(
+                    os.path.join(out, "png", f"{scene_id}.png"),
+                    map_of(i),
+                    cfg.map_channels,
+                    actors,
+                    ego,
+                    cfg,
+                    title=title,
+                )
+                if args.heatmaps:
+                    render_heatmaps(
+                        os.path.join(out, "heatmaps", f"{scene_id}.png"),
+                        map_of(i),
+                        cfg.map_channels,
+                        sample.heatmaps[j],
+                        sample.heatmap_cls[j],
+                        steps,
+                        actors,
+                        ego,
+                        cfg,
+                        title=title,
+                    )
+                bar.update(1)
+    write_dataset(scenarios, os.path.join(out, "scenarionet"))
+    print(
+        json.dumps(
+            {
+                "out": out,
+                "scenes": args.num,
+                "actors": {n: int(c) for n, c in zip(CLASS_NAMES, counts, strict=True)},
+            }
+        )
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -156,8 +363,11 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--log-every", type=int, default=10)
     sp.add_argument("--keep", type=int, default=3, help="checkpoints kept")
     sp.add_argument("--minutes", type=float, help="wall-time budget; stops and saves after it")
-    sp.add_argument("--distributed", action="store_true",
-                    help="multi-host: call jax.distributed.initialize() first")
+    sp.add_argument(
+        "--distributed",
+        action="store_true",
+        help="multi-host: call jax.distributed.initialize() first",
+    )
     sp.add_argument("--set", nargs="*", metavar="FIELD=VALUE", help="config overrides")
     sp.set_defaults(func=cmd_train)
 
@@ -168,6 +378,30 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--batch-size", type=int, default=8)
     sp.add_argument("--actors-out", help="optional .npz of per-step NLL terms")
     sp.set_defaults(func=cmd_score)
+
+    sp = sub.add_parser("sample", help="sample new scenes on the maps of cache scenes")
+    sp.add_argument("--workdir", required=True, help="training workdir (config + checkpoints)")
+    sp.add_argument("--data", required=True, help="cache whose maps and egos condition the scenes")
+    sp.add_argument("--num", type=int, required=True, help="scenes to sample")
+    sp.add_argument("--out", required=True, help="output directory")
+    sp.add_argument("--proposals", type=int, help="best-of-M proposals (default: the config's)")
+    sp.add_argument("--seed", type=int, default=0)
+    sp.add_argument(
+        "--given",
+        help="JSON lines of actors to condition on (scenes.jsonl format); "
+        "scene k uses line k mod lines",
+    )
+    sp.add_argument("--cap", nargs="*", metavar="CLASS=N", help="max actors per class")
+    sp.add_argument(
+        "--heatmaps",
+        action="store_true",
+        help="also render location heatmaps at steps 0, 5, 10, 15, 20",
+    )
+    sp.add_argument(
+        "--index", type=int, nargs="*", help="cache scene indices to cycle through (default: all)"
+    )
+    sp.add_argument("--batch-size", type=int, default=8, help="scenes per compiled call")
+    sp.set_defaults(func=cmd_sample)
     return p
 
 

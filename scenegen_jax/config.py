@@ -80,7 +80,9 @@ class Config:
     def __post_init__(self):
         unknown = set(self.map_layers) - set(LAYER_GROUPS)
         if unknown:
-            raise ValueError(f"unknown map layer groups {sorted(unknown)}; known: {ALL_LAYER_GROUPS}")
+            raise ValueError(
+                f"unknown map layer groups {sorted(unknown)}; known: {ALL_LAYER_GROUPS}"
+            )
         if self.grid_size <= 0 or self.m_per_px <= 0:
             raise ValueError("grid_size and m_per_px must be positive")
 
@@ -138,7 +140,8 @@ PRESETS: dict[str, Config] = {
         name="cpu",
         grid_size=64,
         m_per_px=1.25,
-        max_actors=49,
+        max_actors=39,
+        bptt_window=20,
         hidden=16,
         gn_groups=4,
         num_mixtures=10,

@@ -126,7 +126,7 @@ def pixel_of(position, cfg: Config):
 
 
 def pixel_centers(cfg: Config, size: int | None = None) -> np.ndarray:
-    """[S, S, 2] (x, y) centres of an S x S grid at cfg.m_per_px centred on the ego (S=H default)."""
+    """[S, S, 2] (x, y) centres of an S x S grid at cfg.m_per_px around the ego (S = H default)."""
     s = cfg.grid_size if size is None else size
     half = s * cfg.m_per_px / 2
     coords = (np.arange(s) + 0.5) * cfg.m_per_px - half

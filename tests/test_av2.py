@@ -33,8 +33,19 @@ def _direct_counts(data_root: str, split: str):
 
 
 def test_prepare_counts_match_feather(data_root, tmp_path, capsys):
-    cli_main(["prepare", "--root", data_root, "--split", "train", "--out", str(tmp_path / "c"),
-              "--config", "tiny"])
+    cli_main(
+        [
+            "prepare",
+            "--root",
+            data_root,
+            "--split",
+            "train",
+            "--out",
+            str(tmp_path / "c"),
+            "--config",
+            "tiny",
+        ]
+    )
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     frames, counts = _direct_counts(data_root, "train")
     assert summary["scenes"] == frames == 468
@@ -63,8 +74,9 @@ def test_vehicle_lengths_and_pedestrians(all_frames):
     frames = all_frames["train"][0] + all_frames["val"][0]
     lengths = np.concatenate([f.size[f.cls == VEHICLE, 1] for f in frames])
     assert 3.5 < np.median(lengths) < 6.0
-    ped_speed = np.concatenate([np.linalg.norm(f.velocity[f.cls == PEDESTRIAN], axis=1)
-                                for f in frames])
+    ped_speed = np.concatenate(
+        [np.linalg.norm(f.velocity[f.cls == PEDESTRIAN], axis=1) for f in frames]
+    )
     assert np.median(ped_speed) < 2.5  # walking pace, not the ego's speed
 
 

@@ -17,9 +17,13 @@ CH = {name: i for i, name in enumerate(ALL_MAP_CHANNELS)}
 
 def _lane(x0, x1, y, width=3.6, **kw):
     xs = np.linspace(x0, x1, 5)
-    return Lane(id=1, lane_type=kw.pop("lane_type", "VEHICLE"),
-                left=np.stack([xs, np.full(5, y + width / 2)], 1),
-                right=np.stack([xs, np.full(5, y - width / 2)], 1), **kw)
+    return Lane(
+        id=1,
+        lane_type=kw.pop("lane_type", "VEHICLE"),
+        left=np.stack([xs, np.full(5, y + width / 2)], 1),
+        right=np.stack([xs, np.full(5, y - width / 2)], 1),
+        **kw,
+    )
 
 
 def test_square_drivable_area_pixel_count():
@@ -32,8 +36,9 @@ def test_square_drivable_area_pixel_count():
 
 
 def test_lane_channels_orientation_and_marks():
-    lane = _lane(-10, 10, 0.0, left_mark="SOLID_YELLOW", right_mark="DASHED_WHITE",
-                 is_intersection=True)
+    lane = _lane(
+        -10, 10, 0.0, left_mark="SOLID_YELLOW", right_mark="DASHED_WHITE", is_intersection=True
+    )
     r = rasterize_map(VectorMap(lanes=(lane,)), 40, 1.0)
     inside = r[..., CH["lane_vehicle"]] > 0
     assert inside.sum() == pytest.approx(20 * 3.6, abs=20)
@@ -55,9 +60,12 @@ def test_rotated_vector_map_matches_rotated_canvas(all_frames):
     frame = all_frames["val"][0][40]
     canvas = rasterize_map(frame.map, cfg.canvas_size, cfg.m_per_px)
     theta = np.deg2rad(37.0)
-    direct = select_channels(rasterize_map(
-        frame.map.transform(rotation_matrix(theta), np.zeros(2)), cfg.grid_size, cfg.m_per_px),
-        cfg)
+    direct = select_channels(
+        rasterize_map(
+            frame.map.transform(rotation_matrix(theta), np.zeros(2)), cfg.grid_size, cfg.m_per_px
+        ),
+        cfg,
+    )
     cropped = np.asarray(crop_map(canvas, theta, cfg))
     d = CH["drivable_area"]
     agree = np.mean((cropped[..., d] > 0.5) == (direct[..., d] > 0.5))
@@ -91,7 +99,7 @@ def test_vehicles_keep_their_map_values_under_rotation(tiny_train_cache):
                 continue  # rotated out of the region
             r0, col0 = (int(v) for v in pixel_of(p, cfg))
             r1, col1 = (int(v) for v in pixel_of(q, cfg))
-            window = m0[max(r0 - 1, 0):r0 + 2, max(col0 - 1, 0):col0 + 2]
+            window = m0[max(r0 - 1, 0) : r0 + 2, max(col0 - 1, 0) : col0 + 2]
             assert window.min() - 1e-3 <= m1[r1, col1] <= window.max() + 1e-3
             checked += 1
     assert checked > 50
@@ -101,5 +109,5 @@ def test_crop_at_zero_rotation_is_exact_centre(tiny_train_cache):
     cfg = get_config("tiny")
     canvas, _, _ = cached_scene(tiny_train_cache, 3, cfg)
     off = (cfg.canvas_size - cfg.grid_size) // 2
-    expected = select_channels(canvas[off:off + cfg.grid_size, off:off + cfg.grid_size], cfg)
+    expected = select_channels(canvas[off : off + cfg.grid_size, off : off + cfg.grid_size], cfg)
     np.testing.assert_allclose(np.asarray(crop_map(canvas, 0.0, cfg)), expected, atol=1e-6)

@@ -83,9 +83,9 @@ def test_cache_scenes_are_valid_and_complete(tiny_train_cache):
     assert cache.maps.shape[1:] == (CFG.canvas_size, CFG.canvas_size, 11)
     for index in range(0, len(cache), 5):
         canvas, actors, ego = cached_scene(cache, index, CFG)
-        m, scene, overflow = jax.jit(
-            lambda c, a, e, t: scene_from_cached(c, a, e, t, CFG)
-        )(canvas, actors, ego, 0.3 * index)
+        m, scene, overflow = jax.jit(lambda c, a, e, t: scene_from_cached(c, a, e, t, CFG))(
+            canvas, actors, ego, 0.3 * index
+        )
         scene = jax.tree.map(np.asarray, scene)
         scene.validate(CFG, where=f"scene {index}")
         assert int(overflow) == 0

@@ -29,8 +29,15 @@ from scenegen_jax.train.unroll import reference_step_terms, unroll_terms
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 # Small enough to compile quickly: scenes of the fixture with <= 15 actors in the region.
-CFG = get_config("tiny").replace(max_actors=15, bptt_window=8, batch_size=2, hidden=8,
-                                 gn_groups=2, rotate_augment=False, learning_rate=3e-3)
+CFG = get_config("tiny").replace(
+    max_actors=15,
+    bptt_window=8,
+    batch_size=2,
+    hidden=8,
+    gn_groups=2,
+    rotate_augment=False,
+    learning_rate=3e-3,
+)
 
 
 @pytest.fixture(scope="module")
@@ -148,9 +155,26 @@ def test_nan_batch_is_rejected_before_the_optimizer(tiny_train_cache, small_scen
 
 def _train_cmd(cache, workdir, steps):
     overrides = ["max_actors=15", "bptt_window=8", "batch_size=2", "hidden=8", "gn_groups=2"]
-    return [sys.executable, "-m", "scenegen_jax.cli", "train", "--config", "tiny", "--data", cache,
-            "--workdir", workdir, "--steps", str(steps), "--save-every", "2", "--log-every", "2",
-            "--set", *overrides]
+    return [
+        sys.executable,
+        "-m",
+        "scenegen_jax.cli",
+        "train",
+        "--config",
+        "tiny",
+        "--data",
+        cache,
+        "--workdir",
+        workdir,
+        "--steps",
+        str(steps),
+        "--save-every",
+        "2",
+        "--log-every",
+        "2",
+        "--set",
+        *overrides,
+    ]
 
 
 def _params(workdir):
@@ -169,8 +193,12 @@ def test_killed_run_resumes_exactly(tiny_train_cache, tmp_path):
     subprocess.run(_train_cmd(cache, full, steps), check=True, env=env, capture_output=True)
 
     killed = str(tmp_path / "killed")
-    proc = subprocess.Popen(_train_cmd(cache, killed, steps), env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        _train_cmd(cache, killed, steps),
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     ckpts = os.path.join(killed, "checkpoints")
     deadline = time.time() + 300
     while time.time() < deadline:
@@ -220,9 +248,13 @@ for a, b in zip(jax.tree.leaves(out[0][2]), jax.tree.leaves(out[1][2])):
     np.testing.assert_allclose(a, b, atol=1e-4, rtol=0)
 print("OK", out[0][0], out[1][0])
 """
-    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=8",
-           "JAX_PLATFORMS": "cpu"}
-    res = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True,
-                         cwd=REPO)
+    env = {
+        **os.environ,
+        "XLA_FLAGS": "--xla_force_host_platform_device_count=8",
+        "JAX_PLATFORMS": "cpu",
+    }
+    res = subprocess.run(
+        [sys.executable, "-c", script], env=env, capture_output=True, text=True, cwd=REPO
+    )
     assert res.returncode == 0, res.stderr[-3000:]
     assert "OK" in res.stdout

@@ -79,9 +79,7 @@ def list_logs(root: str, split: str) -> list[str]:
     split_dir = os.path.join(root, split)
     if not os.path.isdir(split_dir):
         raise FileNotFoundError(f"{split_dir}: no such split directory")
-    logs = sorted(
-        p for p in glob.glob(os.path.join(split_dir, "*")) if os.path.isdir(p)
-    )
+    logs = sorted(p for p in glob.glob(os.path.join(split_dir, "*")) if os.path.isdir(p))
     if not logs:
         raise FileNotFoundError(f"{split_dir}: no log directories")
     return logs
@@ -190,7 +188,9 @@ def vector_map_from_json(data: dict, path: str) -> VectorMap:
             Lane(
                 id=int(seg.get("id", lid)),
                 lane_type=lane_type,
-                left=_points(seg.get("left_lane_boundary", []), path, f"{where}.left_lane_boundary"),
+                left=_points(
+                    seg.get("left_lane_boundary", []), path, f"{where}.left_lane_boundary"
+                ),
                 right=_points(
                     seg.get("right_lane_boundary", []), path, f"{where}.right_lane_boundary"
                 ),
@@ -248,7 +248,9 @@ def read_log(log_dir: str, drops: DropCounter, crop_radius_m: float = 80.0) -> I
         else:
             drops[f"category:{cat}"] += int(rows.sum())
             if cat not in DROPPED_CATEGORIES:
-                log.warning("%s: unknown category %r in %d rows, dropped", ann_path, cat, rows.sum())
+                log.warning(
+                    "%s: unknown category %r in %d rows, dropped", ann_path, cat, rows.sum()
+                )
     numeric = ("length_m", "width_m", "qw", "qx", "qy", "qz", "tx_m", "ty_m", "tz_m")
     for field in numeric:
         bad = keep & ~np.isfinite(ann[field].astype(np.float64))
@@ -269,8 +271,9 @@ def read_log(log_dir: str, drops: DropCounter, crop_radius_m: float = 80.0) -> I
     no_pose = keep & (pose_t[pose_idx] != t_ns)
     if no_pose.any():
         drops["invalid:no_ego_pose"] += int(no_pose.sum())
-        log.warning("%s: %d rows without an ego pose at their timestamp dropped", ann_path,
-                    no_pose.sum())
+        log.warning(
+            "%s: %d rows without an ego pose at their timestamp dropped", ann_path, no_pose.sum()
+        )
         keep &= ~no_pose
 
     cls = np.array([CATEGORY_TO_CLASS.get(c, -1) for c in categories], np.int32)
@@ -302,8 +305,11 @@ def read_log(log_dir: str, drops: DropCounter, crop_radius_m: float = 80.0) -> I
         r, t = pose_rot[p], pose_trans[p]
         yaw_ego = float(np.arctan2(r[1, 0], r[0, 0]))
         city_from_ego = np.array(
-            [[np.cos(yaw_ego), -np.sin(yaw_ego), t[0]], [np.sin(yaw_ego), np.cos(yaw_ego), t[1]],
-             [0.0, 0.0, 1.0]]
+            [
+                [np.cos(yaw_ego), -np.sin(yaw_ego), t[0]],
+                [np.sin(yaw_ego), np.cos(yaw_ego), t[1]],
+                [0.0, 0.0, 1.0],
+            ]
         )
         local_map = city_map.crop(t[:2], crop_radius_m)
         # City -> ego with the full 3D rotation, keeping x, y (consistent with annotations).

@@ -34,8 +34,11 @@ def score_batch(params, batch: Batch, cfg: Config) -> dict:
 @functools.lru_cache(maxsize=4)
 def _jitted_scorer(cfg: Config, mesh):
     data = NamedSharding(mesh, P("data"))
-    return jax.jit(lambda p, b: score_batch(p, b, cfg), in_shardings=(NamedSharding(mesh, P()), data),
-                   out_shardings=data)
+    return jax.jit(
+        lambda p, b: score_batch(p, b, cfg),
+        in_shardings=(NamedSharding(mesh, P()), data),
+        out_shardings=data,
+    )
 
 
 def score_cache(params, cache: Cache, cfg: Config, batch_size: int = 8, progress: bool = True):
@@ -51,8 +54,9 @@ def score_cache(params, cache: Cache, cfg: Config, batch_size: int = 8, progress
     params = jax.device_put(params, NamedSharding(mesh, P()))
     n = len(cache)
     chunks = []
-    for start in tqdm(range(0, n, batch_size), desc="score", unit="batch", file=sys.stderr,
-                      disable=not progress):
+    for start in tqdm(
+        range(0, n, batch_size), desc="score", unit="batch", file=sys.stderr, disable=not progress
+    ):
         idx = np.arange(start, start + batch_size)
         real = idx < n
         idx = np.where(real, idx, 0)  # pad the last batch with scene 0, dropped below

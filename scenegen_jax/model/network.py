@@ -107,11 +107,18 @@ class SceneGenNet(nn.Module):
         self.lstm2_w = self.param("lstm2_w", conv_init, (5, 5, 2 * h, 4 * h))
         self.lstm2_b = self.param("lstm2_b", lstm_bias, (4 * h,))
         self.backbone_w = [
-            self.param(f"backbone{i}_w", conv_init, (3, 3, h, h)) for i in range(cfg.backbone_layers)
+            self.param(f"backbone{i}_w", conv_init, (3, 3, h, h))
+            for i in range(cfg.backbone_layers)
         ]
-        self.backbone_b = [self.param(f"backbone{i}_b", zeros, (h,)) for i in range(cfg.backbone_layers)]
-        self.backbone_gs = [self.param(f"backbone{i}_gn_s", ones, (h,)) for i in range(cfg.backbone_layers)]
-        self.backbone_gb = [self.param(f"backbone{i}_gn_b", zeros, (h,)) for i in range(cfg.backbone_layers)]
+        self.backbone_b = [
+            self.param(f"backbone{i}_b", zeros, (h,)) for i in range(cfg.backbone_layers)
+        ]
+        self.backbone_gs = [
+            self.param(f"backbone{i}_gn_s", ones, (h,)) for i in range(cfg.backbone_layers)
+        ]
+        self.backbone_gb = [
+            self.param(f"backbone{i}_gn_b", zeros, (h,)) for i in range(cfg.backbone_layers)
+        ]
         self.class_mlp = [
             nn.Dense(h, name="class_mlp0"),
             nn.Dense(h, name="class_mlp1"),
@@ -135,7 +142,11 @@ class SceneGenNet(nn.Module):
         self.attr_w = [
             self.param("attr0_w", _stacked(dense_init, n), (n, h, h)),
             self.param("attr1_w", _stacked(dense_init, n), (n, h, h)),
-            self.param("attr2_w", _stacked(nn.initializers.variance_scaling(0.1, "fan_in", "normal"), n), (n, h, out)),
+            self.param(
+                "attr2_w",
+                _stacked(nn.initializers.variance_scaling(0.1, "fan_in", "normal"), n),
+                (n, h, out),
+            ),
         ]
         self.attr_b = [
             self.param("attr0_b", zeros, (n, h)),
@@ -172,7 +183,9 @@ class SceneGenNet(nn.Module):
     def features(self, h2):
         """Backbone: [B,H,W,h] -> [B,H,W,h]."""
         x = h2
-        for w, b, s, gb in zip(self.backbone_w, self.backbone_b, self.backbone_gs, self.backbone_gb, strict=True):
+        for w, b, s, gb in zip(
+            self.backbone_w, self.backbone_b, self.backbone_gs, self.backbone_gb, strict=True
+        ):
             x = jax.nn.relu(group_norm(conv(x, w, b), self.cfg.gn_groups, s, gb))
         return x
 

@@ -58,8 +58,14 @@ def rasterize_map(vmap: VectorMap, size: int, m_per_px: float) -> np.ndarray:
         return tree.query(geoms, predicate="intersects")
 
     lane_polys = [_valid(shapely.Polygon(lane.polygon)) for lane in vmap.lanes]
-    for name, lane_type in (("lane_vehicle", "VEHICLE"), ("lane_bike", "BIKE"), ("lane_bus", "BUS")):
-        sel = [p for p, lane in zip(lane_polys, vmap.lanes, strict=True) if lane.lane_type == lane_type]
+    for name, lane_type in (
+        ("lane_vehicle", "VEHICLE"),
+        ("lane_bike", "BIKE"),
+        ("lane_bus", "BUS"),
+    ):
+        sel = [
+            p for p, lane in zip(lane_polys, vmap.lanes, strict=True) if lane.lane_type == lane_type
+        ]
         channels[name][hit_points(sel)[1]] = 1.0
     sel = [p for p, lane in zip(lane_polys, vmap.lanes, strict=True) if lane.is_intersection]
     channels["lane_intersection"][hit_points(sel)[1]] = 1.0

@@ -79,8 +79,6 @@ def scene_from_cached(canvas, actors: Actors, ego: Actors, theta, cfg: Config):
     n = cfg.max_actors
     overflow = jnp.maximum(jnp.sum(ordered.valid) - n, 0)
     pad = max(n - ordered.num_slots, 0)
-    kept = jax.tree.map(
-        lambda x: jnp.pad(x, [(0, pad)] + [(0, 0)] * (x.ndim - 1))[:n], ordered
-    )
+    kept = jax.tree.map(lambda x: jnp.pad(x, [(0, pad)] + [(0, 0)] * (x.ndim - 1))[:n], ordered)
     scene = Scene(actors=kept, ego=rotate_actors(ego, theta))
     return crop_map(canvas, theta, cfg), scene, overflow

@@ -44,7 +44,10 @@ class Checkpointer:
             except Exception as e:  # orbax raises many types for damaged files
                 log.warning(
                     "%s: checkpoint at step %d is unreadable (%s: %s); trying the previous one",
-                    self.directory, step, type(e).__name__, str(e)[:200],
+                    self.directory,
+                    step,
+                    type(e).__name__,
+                    str(e)[:200],
                 )
                 continue
             log.info("%s: resumed from step %d", self.directory, step)

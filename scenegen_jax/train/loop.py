@@ -91,8 +91,9 @@ def train(
     state = jax.device_put(state, NamedSharding(mesh, P()))
     start = int(state.step)
     metrics_path = os.path.join(workdir, "metrics.jsonl")
-    bar = tqdm(total=steps, initial=start, desc="train", unit="step", file=sys.stderr,
-               disable=not progress)
+    bar = tqdm(
+        total=steps, initial=start, desc="train", unit="step", file=sys.stderr, disable=not progress
+    )
     acc, t0, n0 = None, time.perf_counter(), start
     t_start = t0
     for step in range(start, steps):

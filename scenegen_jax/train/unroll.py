@@ -28,7 +28,7 @@ import jax.numpy as jnp
 
 from scenegen_jax.config import Config
 from scenegen_jax.distributions import TERMS, HeadOutputs, actor_log_likelihood
-from scenegen_jax.model.network import SceneGenNet, conv
+from scenegen_jax.model.network import SceneGenNet, conv, lstm_gates
 from scenegen_jax.raster.actors import draw_actor, empty_actor_raster
 from scenegen_jax.scene import STOP, Actors, Scene, bin_index
 
@@ -98,8 +98,11 @@ def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | 
     n_actors = jnp.sum(scene.actors.valid, axis=1)
     map_gates = apply(SceneGenNet.map_gates, maps)
     draw = jax.vmap(functools.partial(draw_actor, cfg=cfg))
-    raster0 = draw(jnp.broadcast_to(empty_actor_raster(cfg), (b, *empty_actor_raster(cfg).shape)),
-                   scene.ego, jnp.ones((b,), bool))
+    raster0 = draw(
+        jnp.broadcast_to(empty_actor_raster(cfg), (b, *empty_actor_raster(cfg).shape)),
+        scene.ego,
+        jnp.ones((b,), bool),
+    )
     state0 = net.apply({"params": params}, b, method=SceneGenNet.initial_state)
 
     def run(state, raster, start):
@@ -108,7 +111,9 @@ def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | 
         def add(r, a):  # the raster before actor j, then actor j drawn
             return draw(r, a, jnp.zeros((b,), bool)), r
 
-        raster_end, rasters = jax.lax.scan(add, raster, jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), win))
+        raster_end, rasters = jax.lax.scan(
+            add, raster, jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), win)
+        )
         gates = apply(SceneGenNet.actor_gates, rasters.reshape(w * b, *rasters.shape[2:]))
         gates = gates.reshape(w, b, *gates.shape[1:])
 
@@ -120,8 +125,9 @@ def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | 
         t = start + jnp.arange(w)
         targets, is_stop, valid = _step_targets(win, n_actors, t)
         flat = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1).reshape(w * b, *x.shape[2:]), targets)
-        terms = head_terms(net, params, f, flat, jnp.swapaxes(is_stop, 0, 1).reshape(-1), cfg,
-                           hard_negatives)
+        terms = head_terms(
+            net, params, f, flat, jnp.swapaxes(is_stop, 0, 1).reshape(-1), cfg, hard_negatives
+        )
         terms = {k: jnp.swapaxes(v.reshape(w, b), 0, 1) * valid for k, v in terms.items()}
         return (state, raster_end), terms
 
@@ -159,19 +165,20 @@ def reference_step_terms(params, cfg: Config, maps, scene: Scene, hard_negatives
     steps = int(jnp.max(n_actors)) + 1
     actors = _pad_slots(scene.actors, max(steps, scene.actors.cls.shape[1]))
     raster = jax.vmap(functools.partial(draw_actor, cfg=cfg))(
-        jnp.zeros((b, cfg.grid_size, cfg.grid_size, 9)), scene.ego, jnp.ones((b,), bool))
+        jnp.zeros((b, cfg.grid_size, cfg.grid_size, 9)), scene.ego, jnp.ones((b,), bool)
+    )
     state = apply(SceneGenNet.initial_state, b)
     out = {k: [] for k in TERMS}
     for t in range(steps):
         (h1, c1), (h2, c2) = state
         x = jnp.concatenate([maps, raster, h1], axis=-1)
-        from scenegen_jax.model.network import lstm_gates
-
         h1, c1 = lstm_gates(conv(x, w_in, params["lstm1_b"]), c1)
-        h2, c2 = lstm_gates(conv(jnp.concatenate([h1, h2], -1), params["lstm2_w"], params["lstm2_b"]), c2)
+        h2, c2 = lstm_gates(
+            conv(jnp.concatenate([h1, h2], -1), params["lstm2_w"], params["lstm2_b"]), c2
+        )
         state = ((h1, c1), (h2, c2))
         f = apply(SceneGenNet.features, h2)
-        a = jax.tree.map(lambda x: x[:, t], actors)
+        a = jax.tree.map(lambda x, t=t: x[:, t], actors)
         is_stop = n_actors == t
         target = a.replace(cls=jnp.where(is_stop, STOP, a.cls))
         terms = head_terms(net, params, f, target, is_stop, cfg, hard_negatives)

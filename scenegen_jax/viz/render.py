@@ -23,8 +23,9 @@ def box_corners(center, size, heading) -> np.ndarray:
     c, s = np.cos(heading), np.sin(heading)
     fwd, left = np.array([c, s]) * length / 2, np.array([-s, c]) * w / 2
     center = np.asarray(center)
-    return np.stack([center + fwd + left, center - fwd + left, center - fwd - left,
-                     center + fwd - left])
+    return np.stack(
+        [center + fwd + left, center - fwd + left, center - fwd - left, center + fwd - left]
+    )
 
 
 def map_background(map_raster: np.ndarray, channels: tuple[str, ...]) -> np.ndarray:
@@ -58,13 +59,28 @@ def draw_scene(
 ) -> None:
     """Draws one scene on `ax` in metres (ego frame)."""
     half = cfg.region_m / 2
-    ax.imshow(map_background(np.asarray(map_raster, np.float32), channels),
-              extent=(-half, half, -half, half), origin="upper", interpolation="nearest")
+    ax.imshow(
+        map_background(np.asarray(map_raster, np.float32), channels),
+        extent=(-half, half, -half, half),
+        origin="upper",
+        interpolation="nearest",
+    )
     actor_list = [(COLORS["ego"], ego, -1)]
     valid = np.asarray(actors.valid, bool)
     for i in np.flatnonzero(valid):
-        one = Actors(*(np.asarray(f)[i] for f in (actors.cls, actors.position, actors.size,
-                                                 actors.heading, actors.velocity, actors.valid)))
+        one = Actors(
+            *(
+                np.asarray(f)[i]
+                for f in (
+                    actors.cls,
+                    actors.position,
+                    actors.size,
+                    actors.heading,
+                    actors.velocity,
+                    actors.valid,
+                )
+            )
+        )
         actor_list.append((COLORS[int(one.cls)], one, int(i)))
     for color, a, i in actor_list:
         edge = HIGHLIGHT if i == highlight else "black"
@@ -80,8 +96,17 @@ def draw_scene(
             ax.plot([pos[0], front[0]], [pos[1], front[1]], color="white", lw=0.8, zorder=4)
         v = np.asarray(a.velocity, np.float64)
         if np.hypot(*v) > 0.2:
-            ax.arrow(pos[0], pos[1], v[0] * 0.5, v[1] * 0.5, color=color, width=0.15,
-                     head_width=0.8, length_includes_head=True, zorder=5)
+            ax.arrow(
+                pos[0],
+                pos[1],
+                v[0] * 0.5,
+                v[1] * 0.5,
+                color=color,
+                width=0.15,
+                head_width=0.8,
+                length_includes_head=True,
+                zorder=5,
+            )
     ax.set_xlim(-half, half)
     ax.set_ylim(-half, half)
     ax.set_aspect("equal")
