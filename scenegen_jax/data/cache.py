@@ -63,11 +63,18 @@ class Summary:
 
 
 def write_cache(
-    frames: Iterable[Frame], out_dir: str, cfg: Config, drops: collections.Counter, progress=None
+    frames: Iterable[Frame],
+    out_dir: str,
+    cfg: Config,
+    drops: collections.Counter,
+    progress=None,
+    source: dict | None = None,
 ) -> Summary:
     """Rasterizes and pads every frame into `out_dir`; returns the summary.
 
     `drops` is the reader's counter of dropped rows; it is read after the frames are consumed.
+    `source` (e.g. {"kind": "av2", "root": ..., "split": ..., "stride": ...}) is recorded so
+    that the vector maps can be read again (the baselines need them).
     Actor counts are of actors inside the region of interest (the ones a scene models).
     """
     os.makedirs(out_dir, exist_ok=True)
@@ -113,6 +120,7 @@ def write_cache(
         "config": json.loads(cfg.to_json()),
         "scene_ids": ids,
         "summary": summary.to_dict(),
+        "source": source or {},
     }
     with open(os.path.join(out_dir, "meta.json"), "w") as f:
         json.dump(meta, f, indent=1)
