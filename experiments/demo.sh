@@ -1,17 +1,33 @@
 #!/usr/bin/env bash
-# The demo: prepare the built-in Argoverse 2 logs and render real scenes.
-# Usage: experiments/demo.sh DATA_ROOT OUT_DIR CONFIG
+# The demo: prepare the built-in Argoverse 2 logs, render real scenes, train the tiny model
+# for a few minutes, score the validation log and sample new scenes on its maps.
+# Usage: experiments/demo.sh DATA_ROOT OUT_DIR CONFIG [MINUTES]
 set -euo pipefail
 DATA=${1:-../shared/data/av2_sensor_mini}
 OUT=${2:-out/demo}
 CONFIG=${3:-tiny}
+MINUTES=${4:-3}
 BIN=.venv/bin
 mkdir -p "$OUT"
-echo "== prepare train and val caches ($CONFIG config)"
+
+echo "== 1. prepare train and val caches ($CONFIG config)"
 $BIN/scenegen prepare --source av2 --root "$DATA" --split train --out "$OUT/cache_train" --config "$CONFIG"
 $BIN/scenegen prepare --source av2 --root "$DATA" --split val --out "$OUT/cache_val" --config "$CONFIG"
-echo "== render real scenes at 1 m/px (cpu grid)"
+
+echo "== 2. render real validation scenes (cpu grid, 1.25 m/px)"
 $BIN/scenegen prepare --source av2 --root "$DATA" --split val --out "$OUT/cache_val_cpu" --config cpu --stride 25
 $BIN/scenegen render --cache "$OUT/cache_val_cpu" --index 0 2 4 6 --out "$OUT/real/val.png"
 $BIN/scenegen render --cache "$OUT/cache_val_cpu" --index 2 --rotate 45 --out "$OUT/real/val_rotated45.png"
-echo "== demo outputs in $OUT"
+
+echo "== 3. train the $CONFIG model for $MINUTES minutes (resumes if run again)"
+$BIN/scenegen train --config "$CONFIG" --data "$OUT/cache_train" --workdir "$OUT/model" \
+    --steps 100000 --minutes "$MINUTES" --save-every 50 --log-every 10
+
+echo "== 4. score the validation log"
+$BIN/scenegen score --workdir "$OUT/model" --data "$OUT/cache_val" --out "$OUT/val_scores.csv"
+
+echo "== 5. sample scenes on validation maps"
+$BIN/scenegen sample --workdir "$OUT/model" --data "$OUT/cache_val" --num 8 --out "$OUT/samples" \
+    --heatmaps
+
+echo "== demo outputs in $OUT: real/*.png, val_scores.csv, samples/"
