@@ -158,8 +158,12 @@ def get_config(name: str, **overrides: Any) -> Config:
     """Returns a preset with `overrides` applied (values parsed from strings if needed)."""
     if name not in PRESETS:
         raise ValueError(f"unknown config {name!r}; choose one of {sorted(PRESETS)}")
-    base = PRESETS[name]
-    fields = {f.name: f for f in dataclasses.fields(Config)}
+    return apply_overrides(PRESETS[name], **overrides)
+
+
+def apply_overrides(base: Config, **overrides: Any) -> Config:
+    """`base` with fields replaced; string values are parsed to the field's type."""
+    fields = {f.name for f in dataclasses.fields(Config)}
     parsed: dict[str, Any] = {}
     for key, value in overrides.items():
         if key not in fields:

@@ -11,21 +11,11 @@ import numpy as np  # noqa: E402
 from matplotlib.patches import Polygon  # noqa: E402
 
 from scenegen_jax.config import Config  # noqa: E402
+from scenegen_jax.geometry import box_corners  # noqa: E402
 from scenegen_jax.scene import BICYCLIST, PEDESTRIAN, VEHICLE, Actors  # noqa: E402
 
 COLORS = {"ego": "#d62728", VEHICLE: "#1f77b4", PEDESTRIAN: "#ff7f0e", BICYCLIST: "#2ca02c"}
 HIGHLIGHT = "#9400d3"
-
-
-def box_corners(center, size, heading) -> np.ndarray:
-    """[4, 2] corners of an oriented box; size = (width, length), length along heading."""
-    w, length = size
-    c, s = np.cos(heading), np.sin(heading)
-    fwd, left = np.array([c, s]) * length / 2, np.array([-s, c]) * w / 2
-    center = np.asarray(center)
-    return np.stack(
-        [center + fwd + left, center - fwd + left, center - fwd - left, center + fwd - left]
-    )
 
 
 def map_background(map_raster: np.ndarray, channels: tuple[str, ...]) -> np.ndarray:

@@ -1,0 +1,40 @@
+"""Simple realism statistics of scenes against their maps: drivable-area share, class mix."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from scenegen_jax.config import Config
+from scenegen_jax.raster.map import ALL_MAP_CHANNELS
+from scenegen_jax.scene import CLASS_NAMES, VEHICLE
+
+
+def drivable_share(canvas: np.ndarray, actors, cfg: Config, radius_m: float = 40.0):
+    """(vehicle centres on the drivable area, vehicle centres counted) for one unrotated scene.
+
+    Args:
+      canvas: [S, S, len(ALL_MAP_CHANNELS)] map canvas of the scene (cache layout).
+      actors: numpy Actors [N] in the ego frame.
+      cfg: config of the canvas (resolution).
+      radius_m: only vehicles within this distance of the ego count.
+    """
+    drivable = np.asarray(canvas[..., ALL_MAP_CHANNELS.index("drivable_area")], np.float32)
+    s = drivable.shape[0]
+    half = s * cfg.m_per_px / 2
+    pos = np.asarray(actors.position)
+    sel = np.asarray(actors.valid) & (np.asarray(actors.cls) == VEHICLE)
+    sel &= np.linalg.norm(pos, axis=1) < radius_m
+    col = np.floor((pos[sel, 0] + half) / cfg.m_per_px).astype(int)
+    row = np.floor((half - pos[sel, 1]) / cfg.m_per_px).astype(int)
+    ok = (row >= 0) & (row < s) & (col >= 0) & (col < s)
+    return int((drivable[row[ok], col[ok]] > 0.5).sum()), int(sel.sum())
+
+
+def class_mix(actors_list) -> dict[str, float]:
+    """Fraction of actors per class over a list of numpy Actors."""
+    counts = np.zeros(len(CLASS_NAMES))
+    for a in actors_list:
+        cls = np.asarray(a.cls)[np.asarray(a.valid)]
+        counts += np.bincount(cls, minlength=len(CLASS_NAMES))[: len(CLASS_NAMES)]
+    total = max(counts.sum(), 1)
+    return {name: float(c / total) for name, c in zip(CLASS_NAMES, counts, strict=True)}
