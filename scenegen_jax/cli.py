@@ -11,7 +11,7 @@ import sys
 
 from tqdm import tqdm
 
-from scenegen_jax.config import PRESETS, get_config
+from scenegen_jax.config import PRESETS, Config, apply_overrides, get_config
 
 
 def _overrides(pairs: list[str]) -> dict[str, str]:
@@ -26,29 +26,14 @@ def _overrides(pairs: list[str]) -> dict[str, str]:
 
 def cmd_prepare(args) -> None:
     from scenegen_jax.data.cache import write_cache
+    from scenegen_jax.data.sources import read_frames, source_spec
 
     cfg = get_config(args.config, **_overrides(args.set))
-    if args.stride < 1:
-        raise SystemExit("--stride must be >= 1")
+    spec = source_spec(args.source, args.root, args.split, args.stride)
     drops: collections.Counter = collections.Counter()
-    if args.source == "av2":
-        from scenegen_jax.data.av2 import read_split
-
-        frames = read_split(args.root, args.split, drops, stride=args.stride)
-    else:
-        from scenegen_jax.data.scenarionet import read_scenarionet
-
-        frames = _scenarionet_frames(read_scenarionet(args.root), drops, args.stride)
     with tqdm(desc=f"prepare {args.source}:{args.split}", unit="scene", file=sys.stderr) as bar:
-        summary = write_cache(frames, args.out, cfg, drops, progress=bar)
+        summary = write_cache(read_frames(spec, drops), args.out, cfg, drops, bar, spec)
     print(json.dumps({"out": args.out, "config": cfg.name, **summary.to_dict()}))
-
-
-def _scenarionet_frames(pairs, drops: collections.Counter, stride: int):
-    for i, (frame, dropped) in enumerate(pairs):
-        drops.update(dropped)
-        if i % stride == 0:
-            yield frame
 
 
 def cmd_render(args) -> None:
@@ -59,7 +44,8 @@ def cmd_render(args) -> None:
     from scenegen_jax.viz.render import render_scene
 
     cache = load_cache(args.cache)
-    cfg = get_config(cache.meta["config"]["name"], **_overrides(args.set))
+    saved = Config.from_json(json.dumps(cache.meta["config"]))
+    cfg = apply_overrides(saved, **_overrides(args.set))
     cache.check_config(cfg)
     indices = args.index if args.index else [0]
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
@@ -184,6 +170,10 @@ def cmd_sample(args) -> None:
     if args.proposals is not None and args.proposals < 1:
         raise SystemExit("--proposals must be >= 1")
     cfg, state = load_trained(args.workdir)
+    # Uncommitted copies: restored arrays are committed to a device, and jit compiles a
+    # separate executable for committed inputs.
+    params = jax.device_put(jax.device_get(state.params))
+    del state
     cache = load_cache(args.data)
     cache.check_config(cfg)
     indices = list(args.index) if args.index else list(range(len(cache)))
@@ -254,7 +244,7 @@ def cmd_sample(args) -> None:
             keys = jax.vmap(lambda k: jax.random.fold_in(key, k))(jnp.asarray(ks))[:, None]
             sample = sample_batch(
                 keys,
-                state.params,
+                params,
                 np.stack([map_of(i) for i in map_ids]),
                 egos,
                 given,
