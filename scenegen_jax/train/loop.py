@@ -129,7 +129,7 @@ def load_trained(workdir: str) -> tuple[Config, TrainState]:
     """(config, latest readable train state) of a training workdir."""
     cfg = load_workdir_config(workdir)
     ckpt = Checkpointer(os.path.join(workdir, "checkpoints"), every=1)
-    state = ckpt.restore_latest(init_state(cfg))
+    state = ckpt.restore_latest(jax.eval_shape(lambda: init_state(cfg)))
     ckpt.close()
     if state is None:
         raise FileNotFoundError(f"{workdir}/checkpoints: no readable checkpoint")
