@@ -50,7 +50,7 @@ class Checkpointer:
                     str(e)[:200],
                 )
                 continue
-            log.info("%s: resumed from step %d", self.directory, step)
+            log.info("%s: restored the checkpoint of step %d", self.directory, step)
             return TrainState(**restored)
         return None
 
