@@ -27,3 +27,6 @@ demo: install
 
 clean:
 	rm -rf $(OUT) .pytest_cache
+
+bench: install
+	$(BIN)/python bench/run.py --config cpu --out bench/results.json
