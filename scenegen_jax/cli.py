@@ -79,7 +79,7 @@ def cmd_train(args) -> None:
         import jax
 
         jax.distributed.initialize()
-    train(
+    state = train(
         cfg,
         args.data,
         args.workdir,
@@ -89,7 +89,7 @@ def cmd_train(args) -> None:
         keep=args.keep,
         max_seconds=args.minutes * 60 if args.minutes else None,
     )
-    print(json.dumps({"workdir": args.workdir, "steps": args.steps}))
+    print(json.dumps({"workdir": args.workdir, "step": int(state.step)}))
 
 
 def cmd_score(args) -> None:
