@@ -103,6 +103,8 @@ def cmd_score(args) -> None:
     from scenegen_jax.scene import CLASS_NAMES
     from scenegen_jax.train.loop import load_trained
 
+    if args.top_k < 0 or (args.top_k and not args.render):
+        raise SystemExit("--top-k K needs K >= 0 and --render DIR")
     cfg, state = load_trained(args.workdir)
     cache = load_cache(args.data)
     cache.check_config(cfg)
@@ -136,9 +138,44 @@ def cmd_score(args) -> None:
                 ]
             )
     summary = summarize_scores(scores)
+    if args.top_k:
+        summary["rendered"] = _render_worst(scores, cache, cfg, args.top_k, args.render)
     print(json.dumps({"out": args.out, **summary}))
     if args.actors_out:
         np.savez(args.actors_out, **scores)
+
+
+def _render_worst(scores, cache, cfg, k: int, out_dir: str) -> list[str]:
+    """Renders the k least likely scenes with their least likely actor highlighted."""
+    import numpy as np
+
+    from scenegen_jax.data.cache import cached_scene
+    from scenegen_jax.eval.nll import worst_scenes
+    from scenegen_jax.raster.transform import scene_from_cached
+    from scenegen_jax.scene import CLASS_NAMES
+    from scenegen_jax.viz.render import render_scene
+
+    os.makedirs(out_dir, exist_ok=True)
+    paths = []
+    for rank, (i, step, per_actor, terms) in enumerate(worst_scenes(scores, k)):
+        canvas, actors, ego = cached_scene(cache, i, cfg)
+        map_raster, scene, _ = scene_from_cached(canvas, actors, ego, 0.0, cfg)
+        cls = CLASS_NAMES[int(scene.actors.cls[step])]
+        worst = ", ".join(f"{t} {v:.1f}" for t, v in terms.items())
+        path = os.path.join(out_dir, f"top{rank + 1:02d}_{i:05d}.png")
+        render_scene(
+            path,
+            np.asarray(map_raster),
+            cfg.map_channels,
+            scene.actors,
+            scene.ego,
+            cfg,
+            highlight=step,
+            title=f"#{rank + 1} {cache.scene_ids[i]}: {per_actor:.2f} nats/actor\n"
+            f"highlighted {cls} ({sum(terms.values()):.1f} nats: {worst})",
+        )
+        paths.append(path)
+    return paths
 
 
 def cmd_sample(args) -> None:
@@ -386,6 +423,9 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--out", required=True, help="CSV, one row per scene")
     sp.add_argument("--batch-size", type=int, default=8)
     sp.add_argument("--actors-out", help="optional .npz of per-step NLL terms")
+    sp.add_argument("--top-k", type=int, default=0,
+                    help="render the K scenes with the highest NLL per actor (needs --render)")
+    sp.add_argument("--render", help="directory for the --top-k renders")
     sp.set_defaults(func=cmd_score)
 
     sp = sub.add_parser("sample", help="sample new scenes on the maps of cache scenes")

@@ -81,3 +81,25 @@ def summarize_scores(scores: dict) -> dict:
     actor = valid & (cls < len(CLASS_NAMES))
     out["nll_per_actor"] = float(total[actor].sum() / max(actor.sum(), 1))
     return out
+
+
+def worst_scenes(scores: dict, k: int) -> list[tuple[int, int, float, dict]]:
+    """The k scenes with the highest NLL per actor, most unlikely first (paper Figure 5).
+
+    Returns (scene index, step of its most unlikely actor, scene NLL per actor, that actor's
+    NLL by term) per scene; the step indexes the scene's actors in canonical order. Scenes
+    without actors are skipped.
+    """
+    total = sum(scores[k_] for k_ in TERMS)
+    actor = scores["step_valid"] & (scores["step_cls"] < len(CLASS_NAMES))
+    counts = actor.sum(1)
+    per_actor = np.where(counts > 0, (total * scores["step_valid"]).sum(1) / np.maximum(counts, 1),
+                         -np.inf)
+    out = []
+    for i in np.argsort(-per_actor, kind="stable")[:k]:
+        if counts[i] == 0:
+            break
+        step = int(np.argmax(np.where(actor[i], total[i], -np.inf)))
+        terms = {k_: float(scores[k_][i, step]) for k_ in TERMS}
+        out.append((int(i), step, float(per_actor[i]), terms))
+    return out

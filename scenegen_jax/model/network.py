@@ -75,11 +75,49 @@ def _stacked(init, n: int):
     return f
 
 
-def lstm_gates(gates, c):
-    """ConvLSTM cell update from pre-activation gates [.., 4h] (order i, f, o, g)."""
+def lstm_gates_reference(gates, c):
+    """ConvLSTM cell update from pre-activation gates [.., 4h] (order i, f, o, g): (h, c)."""
     i, f, o, g = jnp.split(gates, 4, axis=-1)
     c = jax.nn.sigmoid(f) * c + jax.nn.sigmoid(i) * jnp.tanh(g)
     return jax.nn.sigmoid(o) * jnp.tanh(c), c
+
+
+def _materialize(x):
+    """x, exactly, through a product with the identity: XLA:CPU does not fuse elementwise
+    work through a dot (and drops optimization barriers before fusion), so this stores x."""
+    return jnp.einsum("...c,cd->...d", x, jnp.eye(x.shape[-1], dtype=x.dtype))
+
+
+def _lstm_forward(gates, c):
+    i, f, o, g = jnp.split(gates, 4, axis=-1)
+    si, sf, so, tg = jax.nn.sigmoid(i), jax.nn.sigmoid(f), jax.nn.sigmoid(o), jnp.tanh(g)
+    c_new = sf * c + si * tg
+    tc = jnp.tanh(c_new)
+    c_new = _materialize(c_new)
+    return (so * tc, c_new), (si, sf, so, tg, c, tc)
+
+
+def _lstm_backward(res, cotangents):
+    si, sf, so, tg, c, tc = res
+    dh, dc_new = cotangents
+    dc = dc_new + dh * so * (1.0 - tc * tc)
+    dgates = jnp.concatenate(
+        [dc * tg * si * (1.0 - si), dc * c * sf * (1.0 - sf), dh * tc * so * (1.0 - so),
+         dc * si * (1.0 - tg * tg)],
+        axis=-1,
+    )
+    # Materialising the cell-state gradient (and the cell state in the forward) keeps XLA from
+    # fusing the whole chain over the unrolled steps into every step (quadratic in T).
+    return dgates, _materialize(dc * sf)
+
+
+@jax.custom_vjp
+def lstm_gates(gates, c):
+    """`lstm_gates_reference` with a hand-written gradient (same values, same gradients)."""
+    return _lstm_forward(gates, c)[0]
+
+
+lstm_gates.defvjp(_lstm_forward, _lstm_backward)
 
 
 class SceneGenNet(nn.Module):
@@ -170,7 +208,11 @@ class SceneGenNet(nn.Module):
         """One ConvLSTM step given layer 1's input gates [B,H,W,4h]; returns (state, h2)."""
         (h1, c1), (h2, c2) = state
         h1, c1 = lstm_gates(input_gates + conv(h1, self.lstm1_rec), c1)
-        h2, c2 = lstm_gates(conv(jnp.concatenate([h1, h2], -1), self.lstm2_w, self.lstm2_b), c2)
+        # Two convolutions instead of one over concat([h1, h2]): the same sum, and XLA:CPU
+        # fuses the concatenation's gradient badly in the unrolled backward pass.
+        h = self.cfg.hidden
+        gates2 = conv(h1, self.lstm2_w[:, :, :h]) + conv(h2, self.lstm2_w[:, :, h:], self.lstm2_b)
+        h2, c2 = lstm_gates(gates2, c2)
         return ((h1, c1), (h2, c2)), h2
 
     def initial_state(self, batch: int):
