@@ -15,7 +15,7 @@ from tqdm import tqdm
 from scenegen_jax.config import Config
 from scenegen_jax.data.cache import Cache
 from scenegen_jax.distributions import TERMS
-from scenegen_jax.scene import CLASS_NAMES
+from scenegen_jax.scene import CLASS_NAMES, pixel_centers
 from scenegen_jax.train.data import gather_batch, to_device
 from scenegen_jax.train.step import Batch, crop_batch, make_mesh
 from scenegen_jax.train.unroll import unroll_terms
@@ -103,3 +103,21 @@ def worst_scenes(scores: dict, k: int) -> list[tuple[int, int, float, dict]]:
         terms = {k_: float(scores[k_][i, step]) for k_ in TERMS}
         out.append((int(i), step, float(per_actor[i]), terms))
     return out
+
+
+def off_road_point(drivable: np.ndarray, cfg: Config) -> np.ndarray:
+    """(x, y) m of the bin centre farthest from the drivable area (inside a city block).
+
+    Args:
+      drivable: bool [H, W] drivable area on the model's grid (`scenegen_jax.scene` layout).
+    Returns:
+      float32 [2]; raises if the whole region is drivable.
+    """
+    from scipy import ndimage
+
+    drivable = np.asarray(drivable, bool)
+    if drivable.all():
+        raise ValueError("the whole region is drivable: no off-road point")
+    distance = ndimage.distance_transform_edt(~drivable)
+    row, col = np.unravel_index(np.argmax(distance), distance.shape)
+    return pixel_centers(cfg)[row, col]
