@@ -29,4 +29,4 @@ clean:
 	rm -rf $(OUT) .pytest_cache
 
 bench: install
-	$(BIN)/python bench/run.py --config cpu --out bench/results.json
+	$(BIN)/python bench/run.py --workdir runs/cpu_map --data runs/cache_cpu_val --out bench/results.json

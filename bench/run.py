@@ -374,11 +374,14 @@ def main_all(args) -> None:
         cpu = {"config": "cpu"}
         rows += ours("train", steps=25, batch=4, runs=r, **cpu)
         rows += ours("score", steps=25, batch=8, runs=r, **cpu)
-        if args.workdir:
+        if args.workdir and not os.path.isdir(os.path.join(args.workdir, "checkpoints")):
+            rows.append({"what": "skipped", "reason": f"{args.workdir}: no trained model; train "
+                         "the cpu model (experiments/results/README.md) to time its sampling"})
+        elif args.workdir:
             for b in (1, 32):
                 rows += ours("sample", batch=b, runs=big, workdir=args.workdir, data=args.data,
                              **cpu)
-        rows.append(ceiling_ours(r))
+        rows.append({**ceiling_ours(r), "ours": True})
     if args.only in (None, "torch"):
         py = torch_env()
         if py is None:
@@ -396,6 +399,10 @@ def main_all(args) -> None:
                 rows += peer(py, "score", "--grid", "320", "--steps", "25", "--runs", "3", *m,
                              *fast)
             rows += peer(py, "ceiling")
+    if args.only and os.path.exists(args.out):  # keep the other side's rows from last time
+        with open(args.out) as f:
+            kept = [r for r in json.load(f)["rows"] if r.get("ours") is (args.only == "ours")]
+        rows += [r for r in kept if r.get("what") != "env" or "torch" in r]
     report = {"rows": rows, "summary": summarize(rows)}
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as f:

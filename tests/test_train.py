@@ -14,7 +14,13 @@ import numpy as np
 import pytest
 
 from scenegen_jax.config import get_config
-from scenegen_jax.model.network import init_params, lstm_gates, lstm_gates_reference
+from scenegen_jax.model.network import (
+    conv,
+    conv_per_example,
+    init_params,
+    lstm_gates,
+    lstm_gates_reference,
+)
 from scenegen_jax.train.data import batch_indices, gather_batch
 from scenegen_jax.train.step import (
     Batch,
@@ -53,7 +59,14 @@ def _batch(cache, idx):
     return gather_batch(cache, np.asarray(idx), CFG)
 
 
-def test_fast_unroll_equals_plain_reference(tiny_train_cache, small_scenes):
+@pytest.mark.parametrize("chunk_bytes", [None, 1, 3 * 2 * 32 * 32 * 8 * 4])
+def test_fast_unroll_equals_plain_reference(tiny_train_cache, small_scenes, chunk_bytes,
+                                            monkeypatch):
+    """Backbone chunks of the whole window (default here), 1 step, and 3 steps (uneven)."""
+    import scenegen_jax.train.unroll as unroll
+
+    if chunk_bytes is not None:
+        monkeypatch.setattr(unroll, "HEAD_CHUNK_BYTES", chunk_bytes)
     cfg = CFG.replace(bptt_window=16)  # one window: the reference has no truncation either
     params = init_params(cfg, jax.random.key(1))
     maps, scene = crop_batch(_batch(tiny_train_cache, small_scenes), jnp.array([0.0, 1.0]), cfg)
@@ -78,6 +91,18 @@ def test_fast_unroll_equals_plain_reference(tiny_train_cache, small_scenes):
     scale = max(float(np.abs(b).max()) for b in jax.tree.leaves(g_ref))
     for a, b in zip(jax.tree.leaves(g_fast), jax.tree.leaves(g_ref), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-2, atol=1e-4 * scale)
+
+
+def test_conv_per_example_single_and_batched_agree():
+    k1, k2, k3 = jax.random.split(jax.random.key(4), 3)
+    x = jax.random.normal(k1, (2, 9, 7, 5))
+    w = jax.random.normal(k2, (2, 3, 3, 5, 4))
+    b = jax.random.normal(k3, (2, 4))
+    both = conv_per_example(x, w, b)
+    for i in range(2):
+        one = conv_per_example(x[i : i + 1], w[i : i + 1], b[i : i + 1])
+        np.testing.assert_allclose(one[0], both[i], rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(one[0], conv(x[i : i + 1], w[i], b[i])[0], rtol=1e-5, atol=1e-5)
 
 
 def test_lstm_cell_gradient_equals_autodiff():

@@ -43,9 +43,12 @@ def conv_per_example(x, w, b):
     """'SAME' convolution with a different kernel per example: x [M, H, W, Ci],
     w [M, kh, kw, Ci, Co], b [M, Co].
 
-    Written as a sum of shifted batched matmuls: XLA:CPU's vmapped (grouped) convolution has a
-    pathologically slow weight gradient, while batched matmuls differentiate efficiently.
+    One example is a plain convolution with its kernel. Batches are a sum of shifted batched
+    matmuls: XLA:CPU's vmapped (grouped) convolution has a pathologically slow weight
+    gradient, while batched matmuls differentiate efficiently.
     """
+    if x.shape[0] == 1:
+        return conv(x, w[0], b[0])
     kh, kw = w.shape[1:3]
     h, wd = x.shape[1:3]
     xp = jnp.pad(x, ((0, 0), (kh // 2, kh // 2), (kw // 2, kw // 2), (0, 0)))

@@ -52,19 +52,38 @@ def _step_targets(actors: Actors, n_actors, t):
     return actors.replace(cls=cls), is_stop, valid
 
 
-def head_terms(net: SceneGenNet, params, f, targets: Actors, is_stop, cfg: Config, hard_negatives):
-    """Per-term log-likelihoods from backbone features f [M, H, W, h] and targets [M]."""
+# Bytes of backbone activations per chunk of steps: XLA:CPU's convolutions slow down 2-4x
+# (weight gradients most) once a batch no longer fits in cache (bench/README.md).
+HEAD_CHUNK_BYTES = 2 * 2**20
+
+
+def head_chunk(cfg: Config, batch: int) -> int:
+    """Steps whose backbone and heads run as one batch (1 at the paper's grid)."""
+    per_step = batch * cfg.grid_size * cfg.grid_size * cfg.hidden * 4
+    return max(1, min(cfg.bptt_window, HEAD_CHUNK_BYTES // per_step))
+
+
+def step_heads(net: SceneGenNet, params, f, cls, bins):
+    """The convolutional heads of one step: features f [M, H, W, h] -> (class logits [M, 4],
+    location logits of class cls [M, H*W], features at the target bins [M, h])."""
 
     def apply(method, *args):
         return net.apply({"params": params}, *args, method=method)
 
-    cls = targets.cls
-    bins = bin_index(targets.position, cfg)
     feat = f.reshape(f.shape[0], -1, f.shape[-1])[jnp.arange(f.shape[0]), bins]
-    box, heading, velocity = apply(SceneGenNet.attributes, feat, cls)
+    return apply(SceneGenNet.class_logits, f), apply(SceneGenNet.location_logits, f, cls), feat
+
+
+def head_terms(net: SceneGenNet, params, heads, targets: Actors, is_stop, cfg: Config,
+               hard_negatives):
+    """Per-term log-likelihoods of targets [M] from `step_heads` outputs (any leading M)."""
+    class_logits, location_logits, feat = heads
+    box, heading, velocity = net.apply(
+        {"params": params}, feat, targets.cls, method=SceneGenNet.attributes
+    )
     head = HeadOutputs(
-        class_logits=apply(SceneGenNet.class_logits, f),
-        location_logits=apply(SceneGenNet.location_logits, f, cls),
+        class_logits=class_logits,
+        location_logits=location_logits,
         box=box,
         heading=heading,
         velocity=velocity,
@@ -114,19 +133,27 @@ def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | 
         raster_end, rasters = jax.lax.scan(
             add, raster, jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), win)
         )
-        gates = apply(SceneGenNet.actor_gates, rasters.reshape(w * b, *rasters.shape[2:]))
-        gates = gates.reshape(w, b, *gates.shape[1:])
-
-        def recur(s, g):
-            return apply(SceneGenNet.recur, s, g + map_gates)
-
-        state, h2 = jax.lax.scan(recur, state, gates, unroll=True)  # h2 [W, B, H, W, h]
-        f = apply(SceneGenNet.features, h2.reshape(w * b, *h2.shape[2:]))
         t = start + jnp.arange(w)
         targets, is_stop, valid = _step_targets(win, n_actors, t)
+        bins = bin_index(targets.position, cfg)  # [B, W]
+        chunk = head_chunk(cfg, b)
+        heads = []
+        for c0 in range(0, w, chunk):
+            steps = range(c0, min(c0 + chunk, w))
+            h2s = []
+            for j in steps:
+                gates = apply(SceneGenNet.actor_gates, rasters[j]) + map_gates
+                state, h2 = apply(SceneGenNet.recur, state, gates)
+                h2s.append(h2)
+            f = apply(SceneGenNet.features, jnp.concatenate(h2s))  # [n * B, ...] step-major
+            cls = jnp.swapaxes(targets.cls[:, c0 : c0 + chunk], 0, 1).reshape(-1)
+            at = jnp.swapaxes(bins[:, c0 : c0 + chunk], 0, 1).reshape(-1)
+            heads.append(step_heads(net, params, f, cls, at))
+        # The densities are cheap and small: one batched call over the window's steps.
+        heads = jax.tree.map(lambda *x: jnp.concatenate(x), *heads)  # [W * B, ...] step-major
         flat = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1).reshape(w * b, *x.shape[2:]), targets)
         terms = head_terms(
-            net, params, f, flat, jnp.swapaxes(is_stop, 0, 1).reshape(-1), cfg, hard_negatives
+            net, params, heads, flat, jnp.swapaxes(is_stop, 0, 1).reshape(-1), cfg, hard_negatives
         )
         terms = {k: jnp.swapaxes(v.reshape(w, b), 0, 1) * valid for k, v in terms.items()}
         return (state, raster_end), terms
@@ -181,7 +208,8 @@ def reference_step_terms(params, cfg: Config, maps, scene: Scene, hard_negatives
         a = jax.tree.map(lambda x, t=t: x[:, t], actors)
         is_stop = n_actors == t
         target = a.replace(cls=jnp.where(is_stop, STOP, a.cls))
-        terms = head_terms(net, params, f, target, is_stop, cfg, hard_negatives)
+        heads = step_heads(net, params, f, target.cls, bin_index(target.position, cfg))
+        terms = head_terms(net, params, heads, target, is_stop, cfg, hard_negatives)
         for k in TERMS:
             out[k].append(terms[k] * (t <= n_actors))
         raster = jax.vmap(functools.partial(draw_actor, cfg=cfg))(raster, a, jnp.zeros((b,), bool))

@@ -1,0 +1,72 @@
+"""Where a train step's time goes: XLA:CPU thunk times from a `jax.profiler` trace.
+
+    .venv/bin/python bench/profile.py cpu max_actors=24                 # cpu config, T = 40
+    .venv/bin/python bench/profile.py paper grid_size=128 m_per_px=0.625 max_actors=24 \
+        bptt_window=25 batch_size=1                                     # the reference's shape
+
+Prints the step time (after compilation) and the thunk kinds that take the most time
+(`ynn_fusion`: convolutions and dots through YNNPACK; `*_fusion`: XLA loop fusions). Run
+alone on a quiet machine. XLA_FLAGS=--xla_dump_to=DIR --xla_dump_hlo_as_text adds the HLO
+that names each thunk.
+"""
+
+from __future__ import annotations
+
+import collections
+import glob
+import gzip
+import json
+import re
+import sys
+import tempfile
+import time
+
+import jax
+from synthetic import synthetic_batch
+
+from scenegen_jax.config import get_config
+from scenegen_jax.train.step import init_state, make_train_step
+
+
+def thunk_times(trace_dir: str) -> collections.Counter:
+    """Total microseconds per thunk kind (name without its numeric suffix)."""
+    path = sorted(glob.glob(f"{trace_dir}/**/*.json.gz", recursive=True))[-1]
+    with gzip.open(path) as f:
+        trace = json.load(f)
+    events = trace["traceEvents"] if isinstance(trace, dict) else trace
+    total: collections.Counter = collections.Counter()
+    for e in events:
+        name = e.get("name", "")
+        if e.get("ph") == "X" and "dur" in e and not name.startswith(("ThunkExecutor", "$")):
+            total[re.sub(r"\.\d+$", "", name)] += e["dur"]
+    return total
+
+
+def main() -> None:
+    name, *pairs = sys.argv[1:] or ["cpu"]
+    cfg = get_config(name, rotate_augment=False, **dict(p.split("=", 1) for p in pairs))
+    state = init_state(cfg)
+    batch = jax.device_put(synthetic_batch(cfg, cfg.batch_size, cfg.max_actors))
+    step = make_train_step(cfg)
+    t = time.perf_counter()
+    state, stats = step(state, batch)
+    jax.block_until_ready(stats)
+    print(f"compile + first step {time.perf_counter() - t:.2f} s")
+    for _ in range(2):
+        t = time.perf_counter()
+        state, stats = step(state, batch)
+        jax.block_until_ready(stats)
+        print(f"step {time.perf_counter() - t:.3f} s")
+    with tempfile.TemporaryDirectory() as d:
+        jax.profiler.start_trace(d, create_perfetto_trace=True)
+        state, stats = step(state, batch)
+        jax.block_until_ready(stats)
+        jax.profiler.stop_trace()
+        total = thunk_times(d)
+    print(f"thunk time {sum(total.values()) / 1e3:.0f} ms (threads overlap)")
+    for kind, us in total.most_common(12):
+        print(f"{us / 1e3:9.1f} ms  {kind}")
+
+
+if __name__ == "__main__":
+    main()
