@@ -401,7 +401,7 @@ def main_all(args) -> None:
             rows += peer(py, "ceiling")
     if args.only and os.path.exists(args.out):  # keep the other side's rows from last time
         with open(args.out) as f:
-            kept = [r for r in json.load(f)["rows"] if r.get("ours") is (args.only == "ours")]
+            kept = [r for r in json.load(f)["rows"] if r.get("ours") is (args.only == "torch")]
         rows += [r for r in kept if r.get("what") != "env" or "torch" in r]
     report = {"rows": rows, "summary": summarize(rows)}
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)

@@ -15,8 +15,7 @@ import pytest
 
 from scenegen_jax.config import get_config
 from scenegen_jax.model.network import (
-    conv,
-    conv_per_example,
+    SceneGenNet,
     init_params,
     lstm_gates,
     lstm_gates_reference,
@@ -93,16 +92,17 @@ def test_fast_unroll_equals_plain_reference(tiny_train_cache, small_scenes, chun
         np.testing.assert_allclose(a, b, rtol=1e-2, atol=1e-4 * scale)
 
 
-def test_conv_per_example_single_and_batched_agree():
-    k1, k2, k3 = jax.random.split(jax.random.key(4), 3)
-    x = jax.random.normal(k1, (2, 9, 7, 5))
-    w = jax.random.normal(k2, (2, 3, 3, 5, 4))
-    b = jax.random.normal(k3, (2, 4))
-    both = conv_per_example(x, w, b)
-    for i in range(2):
-        one = conv_per_example(x[i : i + 1], w[i : i + 1], b[i : i + 1])
-        np.testing.assert_allclose(one[0], both[i], rtol=1e-5, atol=1e-5)
-        np.testing.assert_allclose(one[0], conv(x[i : i + 1], w[i], b[i])[0], rtol=1e-5, atol=1e-5)
+def test_location_head_single_example_path_agrees(tiny_train_cache):
+    cfg = CFG
+    params = init_params(cfg, jax.random.key(4))
+    f = jax.random.normal(jax.random.key(5), (3, cfg.grid_size, cfg.grid_size, cfg.hidden))
+    cls = jnp.array([2, 0, 1])
+    net = SceneGenNet(cfg)
+    batched = net.apply({"params": params}, f, cls, method=SceneGenNet.location_logits)
+    for i in range(3):
+        one = net.apply({"params": params}, f[i : i + 1], cls[i : i + 1], True,
+                        method=SceneGenNet.location_logits)
+        np.testing.assert_allclose(one[0], batched[i], rtol=1e-4, atol=1e-4)
 
 
 def test_lstm_cell_gradient_equals_autodiff():

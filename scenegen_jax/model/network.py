@@ -43,12 +43,9 @@ def conv_per_example(x, w, b):
     """'SAME' convolution with a different kernel per example: x [M, H, W, Ci],
     w [M, kh, kw, Ci, Co], b [M, Co].
 
-    One example is a plain convolution with its kernel. Batches are a sum of shifted batched
-    matmuls: XLA:CPU's vmapped (grouped) convolution has a pathologically slow weight
-    gradient, while batched matmuls differentiate efficiently.
+    Written as a sum of shifted batched matmuls: XLA:CPU's vmapped (grouped) convolution has a
+    pathologically slow weight gradient, while batched matmuls differentiate efficiently.
     """
-    if x.shape[0] == 1:
-        return conv(x, w[0], b[0])
     kh, kw = w.shape[1:3]
     h, wd = x.shape[1:3]
     xp = jnp.pad(x, ((0, 0), (kh // 2, kh // 2), (kw // 2, kw // 2), (0, 0)))
@@ -241,16 +238,27 @@ class SceneGenNet(nn.Module):
         x = jax.nn.relu(self.class_mlp[1](x))
         return self.class_mlp[2](x)
 
-    def location_logits(self, f, cls):
-        """Logits over the H*W bins from the head of class `cls` [B] only: [B, H*W]."""
+    def location_logits(self, f, cls, single: bool = False):
+        """Logits over the H*W bins from the head of class `cls` [B] only: [B, H*W].
+
+        single=True (static; B must be 1 and the call not under vmap, as in the unrolled
+        training step at B = 1) runs plain convolutions with that class's kernels, XLA:CPU's
+        fastest; otherwise `conv_per_example`. Both give the same values.
+        """
         cls = jnp.clip(cls, 0, NUM_CLASSES - 1)
+
+        def layer(x, i):
+            if single:
+                return conv(x, self.loc_w[i][cls[0]], self.loc_b[i][cls[0]])
+            return conv_per_example(x, self.loc_w[i][cls], self.loc_b[i][cls])
+
         x = f
         for i in range(2):
-            x = conv_per_example(x, self.loc_w[i][cls], self.loc_b[i][cls])
+            x = layer(x, i)
             scale = self.loc_gs[i][cls][:, None, None, :]
             bias = self.loc_gb[i][cls][:, None, None, :]
             x = jax.nn.relu(group_norm(x, self.cfg.gn_groups, scale, bias))
-        x = conv_per_example(x, self.loc_w[2][cls], self.loc_b[2][cls])
+        x = layer(x, 2)
         return x.reshape(x.shape[0], -1)
 
     def attributes(self, feat, cls):

@@ -71,7 +71,8 @@ def step_heads(net: SceneGenNet, params, f, cls, bins):
         return net.apply({"params": params}, *args, method=method)
 
     feat = f.reshape(f.shape[0], -1, f.shape[-1])[jnp.arange(f.shape[0]), bins]
-    return apply(SceneGenNet.class_logits, f), apply(SceneGenNet.location_logits, f, cls), feat
+    location = apply(SceneGenNet.location_logits, f, cls, f.shape[0] == 1)
+    return apply(SceneGenNet.class_logits, f), location, feat
 
 
 def head_terms(net: SceneGenNet, params, heads, targets: Actors, is_stop, cfg: Config,
