@@ -3,10 +3,9 @@ five-layer conv backbone, a class MLP, per-class location CNNs and per-class att
 
 The network is split into methods so the teacher-forced unroll can be fast (see
 `scenegen_jax.train.unroll`): the first ConvLSTM layer's input convolution is linear in its
-input, so conv(map ++ actors) = conv_map(map) + conv_actors(actors). The map part is
-computed once per scene, the actor part for all steps as one batched convolution, and only
-the recurrent convolutions run inside the scan. The backbone and heads do not feed back
-into the recurrence, so they run batched over all steps after it.
+input, so conv(map ++ actors ++ h1) = conv_map(map) + conv_actors(actors) + conv_rec(h1).
+The map part is computed once per scene. The backbone and heads do not feed back into the
+recurrence, so the unroll can run them on chunks of steps.
 
 All arrays are NHWC; leading axes beyond one batch axis are flattened by the caller.
 """

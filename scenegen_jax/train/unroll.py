@@ -4,17 +4,20 @@ Step t of a scene with n actors predicts actor t (t < n) or the stop token (t = 
 t > n are padding. Steps run in windows of `cfg.bptt_window`: the ConvLSTM state is carried
 from window to window with its gradient cut (truncated backprop through time).
 
-Loops are unrolled at trace time (a Python loop over windows, an unrolled scan over the
-steps of a window): XLA:CPU runs convolution gradients inside while loops and conditionals
-10-20x slower than at the top level (jax-ml/jax#12868), which dominated the train step.
-Every window always runs, so `cfg.max_actors` should fit the data (overflow is counted).
+Loops are unrolled at trace time (Python loops over windows and steps): XLA:CPU runs
+convolution gradients inside while loops and conditionals 10-20x slower than at the top level
+(jax-ml/jax#12868). Every window always runs, so `cfg.max_actors` should fit the data
+(overflow is counted).
 
-Inside a window (the fast path):
+Inside a window (the fast path; measurements in bench/README.md):
   * the map share of layer 1's input convolution is computed once per scene (`map_gates`),
-  * the actor shares of all the window's steps are one batched convolution (`actor_gates`),
-  * only the recurrent convolutions run inside the `lax.scan`,
-  * the backbone and the heads run batched over all steps after the scan, and the location
-    head only for the class scored at each step.
+    so its weight gradient is one convolution over the gradients summed over steps;
+  * per step: the actor share of layer 1's input gates (`actor_gates`) and the recurrence;
+  * the backbone and the conv heads run on chunks of consecutive steps whose activations fit
+    in cache (`head_chunk`; one step at the paper's width and grid): batching a whole window
+    made XLA:CPU's convolutions 2-4x slower once the batch left the cache;
+  * the location head runs only for the class scored at each step;
+  * the densities (small) run once, batched over all steps of the window.
 `reference_step_terms` is the plain per-step version used to test it.
 """
 
