@@ -11,8 +11,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from small import CFG, two_small_scenes
 
-from scenegen_jax.config import get_config
 from scenegen_jax.distributions import TERMS
 from scenegen_jax.eval.nll import off_road_point, score_batch, score_cache, worst_scenes
 from scenegen_jax.raster.transform import crop_map
@@ -20,24 +20,10 @@ from scenegen_jax.scene import VEHICLE, in_region
 from scenegen_jax.train.data import gather_batch
 from scenegen_jax.train.step import Batch, init_state, make_train_step
 
-CFG = get_config("tiny").replace(
-    max_actors=15,
-    bptt_window=8,
-    batch_size=2,
-    hidden=8,
-    gn_groups=2,
-    rotate_augment=False,
-    learning_rate=3e-3,
-)
-
 
 @pytest.fixture(scope="module")
 def scenes(tiny_train_cache):
-    """Two real scenes with at most max_actors actors in the region."""
-    pos = tiny_train_cache.actors.position
-    inside = tiny_train_cache.actors.valid & (np.abs(pos) < CFG.region_m / 2).all(-1)
-    few = np.flatnonzero(inside.sum(1) <= CFG.max_actors)
-    return few[:2]
+    return two_small_scenes(tiny_train_cache)
 
 
 @pytest.fixture(scope="module")

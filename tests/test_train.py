@@ -12,8 +12,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from small import CFG, two_small_scenes
 
-from scenegen_jax.config import get_config
 from scenegen_jax.model.network import (
     SceneGenNet,
     init_params,
@@ -33,25 +33,11 @@ from scenegen_jax.train.step import (
 from scenegen_jax.train.unroll import reference_step_terms, unroll_terms
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-# Small enough to compile quickly: scenes of the fixture with <= 15 actors in the region.
-CFG = get_config("tiny").replace(
-    max_actors=15,
-    bptt_window=8,
-    batch_size=2,
-    hidden=8,
-    gn_groups=2,
-    rotate_augment=False,
-    learning_rate=3e-3,
-)
 
 
 @pytest.fixture(scope="module")
 def small_scenes(tiny_train_cache):
-    pos = tiny_train_cache.actors.position
-    inside = tiny_train_cache.actors.valid & (np.abs(pos) < CFG.region_m / 2).all(-1)
-    few = np.flatnonzero(inside.sum(1) <= CFG.max_actors)
-    assert len(few) >= 2
-    return few[:2]
+    return two_small_scenes(tiny_train_cache)
 
 
 def _batch(cache, idx):

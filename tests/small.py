@@ -1,0 +1,27 @@
+"""The small tiny-config variant shared by the training and scoring tests."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from scenegen_jax.config import get_config
+
+# Small enough to compile quickly: scenes of the fixture with <= 15 actors in the region.
+CFG = get_config("tiny").replace(
+    max_actors=15,
+    bptt_window=8,
+    batch_size=2,
+    hidden=8,
+    gn_groups=2,
+    rotate_augment=False,
+    learning_rate=3e-3,
+)
+
+
+def two_small_scenes(cache) -> np.ndarray:
+    """Indices of the first two scenes of `cache` with at most CFG.max_actors in the region."""
+    pos = cache.actors.position
+    inside = cache.actors.valid & (np.abs(pos) < CFG.region_m / 2).all(-1)
+    few = np.flatnonzero(inside.sum(1) <= CFG.max_actors)
+    assert len(few) >= 2
+    return few[:2]
