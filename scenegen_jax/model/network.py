@@ -82,8 +82,9 @@ def lstm_gates_reference(gates, c):
 
 
 def _materialize(x):
-    """x, exactly, through a product with the identity: XLA:CPU does not fuse elementwise
-    work through a dot (and drops optimization barriers before fusion), so this stores x."""
+    """x through a product with the identity (exact for finite x; a NaN spreads to its
+    pixel's channels): XLA:CPU does not fuse elementwise work through a dot, and drops
+    optimization barriers before fusion, so this makes it store x."""
     return jnp.einsum("...c,cd->...d", x, jnp.eye(x.shape[-1], dtype=x.dtype))
 
 
