@@ -4,7 +4,8 @@
     .venv/bin/python bench/profile.py paper grid_size=128 m_per_px=0.625 max_actors=24 \
         bptt_window=25 batch_size=1                                     # the reference's shape
 
-Prints the step time (after compilation) and the thunk kinds that take the most time
+Prints XLA's buffer plan of the compiled step (`memory_analysis`: the temporaries are most
+of the step's peak memory), the step time (after compilation) and the thunk kinds that take the most time
 (`ynn_fusion`: convolutions and dots through YNNPACK; `*_fusion`: XLA loop fusions). Run
 alone on a quiet machine. XLA_FLAGS=--xla_dump_to=DIR --xla_dump_hlo_as_text adds the HLO
 that names each thunk.
@@ -47,11 +48,17 @@ def main() -> None:
     cfg = get_config(name, rotate_augment=False, **dict(p.split("=", 1) for p in pairs))
     state = init_state(cfg)
     batch = jax.device_put(synthetic_batch(cfg, cfg.batch_size, cfg.max_actors))
-    step = make_train_step(cfg)
+    t = time.perf_counter()
+    step = make_train_step(cfg).lower(state, batch).compile()
+    print(f"compile {time.perf_counter() - t:.2f} s")
+    mem = step.memory_analysis()
+    print(f"XLA buffers: temporaries {mem.temp_size_in_bytes / 2**30:.2f} GiB, arguments "
+          f"{mem.argument_size_in_bytes / 2**30:.2f} GiB, outputs "
+          f"{mem.output_size_in_bytes / 2**30:.2f} GiB")
     t = time.perf_counter()
     state, stats = step(state, batch)
     jax.block_until_ready(stats)
-    print(f"compile + first step {time.perf_counter() - t:.2f} s")
+    print(f"first step {time.perf_counter() - t:.2f} s")
     for _ in range(2):
         t = time.perf_counter()
         state, stats = step(state, batch)

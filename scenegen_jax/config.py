@@ -42,7 +42,8 @@ class Config:
       hidden: ConvLSTM / backbone channels.
       backbone_layers: 3x3 conv layers in the backbone.
       gn_groups: GroupNorm groups.
-      num_mixtures: K, mixture components of box, heading and velocity.
+      num_mixtures: K, mixture components of box, heading and velocity (velocity has at
+        least 2: the v = 0 point mass and one moving component).
       hard_negatives: bins in the training location normaliser (hard negative mining).
       bptt_window: W, steps per truncated-backprop window.
       batch_size: scenes per training step (global, across devices).

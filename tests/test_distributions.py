@@ -147,7 +147,11 @@ def test_layout_sizes_and_validation():
     with pytest.raises(ValueError):
         D.split_box(jnp.zeros(17))
     with pytest.raises(ValueError):
-        D.split_velocity(jnp.zeros(6))  # K = 1 has no moving component
+        D.split_velocity(jnp.zeros(6))  # a lone stationary component has no moving one
+    # K = 1 (the paper's Table 2): velocity keeps the point mass and one moving component.
+    assert (D.BOX_PARAMS(1), D.HEADING_PARAMS(1), D.VELOCITY_PARAMS(1)) == (6, 4, 7)
+    one = D.HeadOutputs(jnp.zeros(4), jnp.zeros(N_BINS), jnp.zeros(6), jnp.zeros(4), jnp.zeros(7))
+    assert one.num_mixtures == 1
     head = D.HeadOutputs(
         jnp.zeros(4), jnp.zeros(N_BINS), jnp.zeros(18), jnp.zeros(12), jnp.zeros(12)
     )

@@ -11,7 +11,9 @@ raw head outputs. With K mixture components:
   velocity [K + 5(K-1)]  = [K logits | (K-1) mu of log speed | (K-1) log sigma of log speed |
                             (K-1)*2 direction biternion (cos, sin) | (K-1) direction log kappa]
            logit 0 is the stationary point mass (v = 0); component k >= 1 uses the k-1-th
-           entry of every later block.
+           entry of every later block. The paper needs K >= 2 here but sweeps K = 1 in its
+           Table 2: with K = 1, velocity keeps the point mass and one moving component
+           (`velocity_components`), box and heading have one component.
 
 Scales are clamped (`LOG_VAR_RANGE`, `LOG_SIGMA_RANGE`, `LOG_KAPPA_RANGE`) so extreme head
 outputs give finite log-likelihoods and gradients; outside the range the gradient is zero.
@@ -44,11 +46,18 @@ def heading_params_size(k: int) -> int:
     return 4 * k
 
 
+def velocity_components(k: int) -> int:
+    """Velocity mixture components for the model's K: the stationary point mass and at least
+    one moving component."""
+    if k < 1:
+        raise ValueError(f"need K >= 1 mixture components, got {k}")
+    return max(k, 2)
+
+
 def velocity_params_size(k: int) -> int:
-    """Length of the raw velocity head output for K components (component 0 = v = 0)."""
-    if k < 2:
-        raise ValueError(f"velocity mixture needs K >= 2 (one stationary component), got {k}")
-    return k + 5 * (k - 1)
+    """Length of the raw velocity head output for the model's K (component 0 = v = 0)."""
+    kv = velocity_components(k)
+    return kv + 5 * (kv - 1)
 
 
 BOX_PARAMS = box_params_size
