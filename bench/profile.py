@@ -23,6 +23,7 @@ import tempfile
 import time
 
 import jax
+from run import peak_rss_gib
 from synthetic import synthetic_batch
 
 from scenegen_jax.config import get_config
@@ -48,9 +49,10 @@ def main() -> None:
     cfg = get_config(name, rotate_augment=False, **dict(p.split("=", 1) for p in pairs))
     state = init_state(cfg)
     batch = jax.device_put(synthetic_batch(cfg, cfg.batch_size, cfg.max_actors))
+    print(f"peak RSS before compiling {peak_rss_gib():.2f} GiB")
     t = time.perf_counter()
     step = make_train_step(cfg).lower(state, batch).compile()
-    print(f"compile {time.perf_counter() - t:.2f} s")
+    print(f"compile {time.perf_counter() - t:.2f} s, peak RSS {peak_rss_gib():.2f} GiB")
     mem = step.memory_analysis()
     print(f"XLA buffers: temporaries {mem.temp_size_in_bytes / 2**30:.2f} GiB, arguments "
           f"{mem.argument_size_in_bytes / 2**30:.2f} GiB, outputs "
@@ -58,7 +60,7 @@ def main() -> None:
     t = time.perf_counter()
     state, stats = step(state, batch)
     jax.block_until_ready(stats)
-    print(f"first step {time.perf_counter() - t:.2f} s")
+    print(f"first step {time.perf_counter() - t:.2f} s, peak RSS {peak_rss_gib():.2f} GiB")
     for _ in range(2):
         t = time.perf_counter()
         state, stats = step(state, batch)

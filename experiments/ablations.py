@@ -6,8 +6,9 @@ Sweeps:
   proposals   M in {1, 10, 20}                          (sampling only, MMD on val)
 
 Each trained member is a `cpu` model trained from scratch for the same number of steps
-(`--steps`, same seed, data order and batch size), then scored on the val cache. One member
-per call, so two members can train side by side, one per core:
+(`--steps`, same seed, data order and batch size), then scored on the val cache; `--seed N`
+trains a repeat with another seed (initialisation, data order, augmentation), reported beside
+seed 0. One member per call, so two members can train side by side, one per core:
 
   taskset -c 0 .venv/bin/python experiments/ablations.py train mixtures 1 --steps 279
   taskset -c 1 .venv/bin/python experiments/ablations.py train mixtures 3 --steps 279
@@ -42,19 +43,25 @@ SWEEPS = {
     },
     "proposals": {"values": ["1", "10", "20"], "label": "proposals M (best-of-M)"},
 }
+MAX_SEEDS = 10  # repeats looked for by `report`
 NLL_COLUMNS = ("scene_nll", "nll_per_actor", "location_nll_per_vehicle", "nll_per_vehicle",
                "nll_per_pedestrian", "nll_per_bicyclist")  # fmt: skip
 
 
-def member_path(sweep: str, value: str) -> str:
-    return os.path.join(RESULTS, "ablations", f"{sweep}_{value.replace(',', '+')}.json")
+def member_name(sweep: str, value: str, seed: int = 0) -> str:
+    return f"{sweep}_{value.replace(',', '+')}" + (f"_seed{seed}" if seed else "")
 
 
-def overrides(sweep: str, value: str) -> list[str]:
+def member_path(sweep: str, value: str, seed: int = 0) -> str:
+    return os.path.join(RESULTS, "ablations", member_name(sweep, value, seed) + ".json")
+
+
+def overrides(sweep: str, value: str, seed: int) -> list[str]:
+    seeded = [f"seed={seed}"] if seed else []
     if sweep == "mixtures":
-        return [f"num_mixtures={value}"]
+        return [f"num_mixtures={value}", *seeded]
     if sweep == "map_layers":
-        return [f"map_layers={value}"]
+        return [f"map_layers={value}", *seeded]
     raise ValueError(f"{sweep} is not a training sweep")
 
 
@@ -74,8 +81,8 @@ def cmd_train(args) -> None:
     values = SWEEPS[args.sweep]["values"]
     if args.value not in values:
         raise SystemExit(f"{args.sweep}: value {args.value!r} not in {values}")
-    workdir = os.path.join(args.runs, f"{args.sweep}_{args.value.replace(',', '+')}")
-    sets = overrides(args.sweep, args.value)
+    workdir = os.path.join(args.runs, member_name(args.sweep, args.value, args.seed))
+    sets = overrides(args.sweep, args.value, args.seed)
     train = [os.path.join(BIN, "scenegen"), "train", "--config", "cpu", "--data", args.train_data,
              "--workdir", workdir, "--steps", str(args.steps), "--set", *sets]
     t0 = time.time()
@@ -85,8 +92,8 @@ def cmd_train(args) -> None:
     score = [os.path.join(BIN, "scenegen"), "score", "--workdir", workdir, "--data",
              args.val_data, "--out", csv]
     summary = json.loads(run(score).strip().splitlines()[-1])
-    write(member_path(args.sweep, args.value), {
-        "sweep": args.sweep, "value": args.value, "steps": args.steps,
+    write(member_path(args.sweep, args.value, args.seed), {
+        "sweep": args.sweep, "value": args.value, "seed": args.seed, "steps": args.steps,
         "train_minutes_this_call": round(minutes, 1), "date": time.strftime("%Y-%m-%d"),
         "commands": [" ".join(train), " ".join(score)], "val": summary,
     })
@@ -140,10 +147,11 @@ def cmd_report(args) -> None:
     spec = SWEEPS[args.sweep]
     records = []
     for v in spec["values"]:
-        path = member_path(args.sweep, v)
-        if os.path.exists(path):
-            with open(path) as f:
-                records.append(json.load(f))
+        for seed in range(MAX_SEEDS):
+            path = member_path(args.sweep, v, seed)
+            if os.path.exists(path):
+                with open(path) as f:
+                    records.append({"seed": seed, **json.load(f)})
     if not records:
         raise SystemExit(f"no results for {args.sweep} yet")
     lines = [f"# Ablation: {spec['label']} (`cpu` config, val log)", ""]
@@ -164,13 +172,14 @@ def cmd_report(args) -> None:
         ylabel = "MMD^2"
     else:
         lines += [f"Every member: `cpu` config trained from scratch for {records[0]['steps']} "
-                  "steps (batch 4, seed 0), scored on all 157 val scenes (nats).", "",
-                  "| " + spec["label"] + " | " + " | ".join(NLL_COLUMNS) + " |",
-                  "|---" * (len(NLL_COLUMNS) + 1) + "|"]
+                  "steps (batch 4), scored on all 157 val scenes (nats). Seed 0 unless the "
+                  "seed column says otherwise; the plot shows each seed and their mean.", "",
+                  "| " + spec["label"] + " | seed | " + " | ".join(NLL_COLUMNS) + " |",
+                  "|---" * (len(NLL_COLUMNS) + 2) + "|"]
         for r in records:
             row = [f"{r['val'][k]:.3f}" if r["val"].get(k) is not None else "-"
                    for k in NLL_COLUMNS]
-            lines.append(f"| {r['value']} | " + " | ".join(row) + " |")
+            lines.append(f"| {r['value']} | {r['seed']} | " + " | ".join(row) + " |")
         ys = {k: [r["val"][k] for r in records] for k in ("nll_per_actor",
                                                            "location_nll_per_vehicle")}
         ylabel = "val NLL (nats)"
@@ -178,15 +187,22 @@ def cmd_report(args) -> None:
     for r in records:
         cmds = r.get("commands") or [r.get("command", "")]
         extra = f" (adopted from {r['adopted_from']})" if r.get("adopted_from") else ""
-        lines += [f"- {r['value']}{extra}:"] + [f"  `{c}`" for c in cmds if c]
+        seed = f" (seed {r['seed']})" if r["seed"] else ""
+        lines += [f"- {r['value']}{seed}{extra}:"] + [f"  `{c}`" for c in cmds if c]
     md = os.path.join(RESULTS, f"ablation_{args.sweep}.md")
     with open(md, "w") as f:
         f.write("\n".join(lines) + "\n")
     fig, ax = plt.subplots(figsize=(5, 3.2))
-    xs = [r["value"].replace("lanes,drivable,crosswalks", "+crosswalks")
-          .replace("lanes,drivable", "+drivable") for r in records]
+    values = list(dict.fromkeys(r["value"] for r in records))
+    xs = [v.replace("lanes,drivable,crosswalks", "+crosswalks").replace("lanes,drivable",
+                                                                          "+drivable")
+          for v in values]
     for k, v in ys.items():
-        ax.plot(xs, v, marker="o", label=k)
+        per = [[y for r, y in zip(records, v, strict=True) if r["value"] == x] for x in values]
+        line = ax.plot(xs, [sum(p) / len(p) for p in per], marker="o", label=k)[0]
+        for i, p in enumerate(per):
+            if len(p) > 1:
+                ax.scatter([i] * len(p), p, s=10, color=line.get_color(), alpha=0.6)
     ax.set_xlabel(spec["label"])
     ax.set_ylabel(ylabel)
     ax.legend(fontsize=7)
@@ -205,6 +221,7 @@ def main() -> None:
     t.add_argument("sweep", choices=("mixtures", "map_layers"))
     t.add_argument("value")
     t.add_argument("--steps", type=int, required=True)
+    t.add_argument("--seed", type=int, default=0, help="a repeat with another seed")
     a = sub.add_parser("adopt")
     a.add_argument("sweep", choices=("mixtures", "map_layers"))
     a.add_argument("value")
