@@ -25,12 +25,14 @@ from scenegen_jax.distributions.categorical import (
 )
 from scenegen_jax.distributions.mixtures import (
     box_log_prob,
+    box_proposal_score,
     heading_log_prob,
     log_i0,
     sample_box,
     sample_heading,
     sample_velocity,
     velocity_log_prob,
+    velocity_proposal_score,
     vonmises_log_prob,
 )
 from scenegen_jax.distributions.params import (
@@ -61,6 +63,7 @@ __all__ = [
     "actor_log_likelihood",
     "best_of_m",
     "box_log_prob",
+    "box_proposal_score",
     "box_params_size",
     "class_log_prob",
     "hard_negative_log_prob",
@@ -83,6 +86,7 @@ __all__ = [
     "split_velocity",
     "term_masks",
     "velocity_log_prob",
+    "velocity_proposal_score",
     "velocity_params_size",
     "vonmises_log_prob",
 ]

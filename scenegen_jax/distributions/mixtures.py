@@ -173,6 +173,31 @@ def velocity_log_prob(
     return jnp.where(moving, moving_lp, log_w[0])
 
 
+def box_proposal_score(raw: jnp.ndarray, size: jnp.ndarray) -> jnp.ndarray:
+    """Best-of-M score of a box proposal: its log density over (log width, log length), the
+    mixture's own coordinates. The density over (width, length) carries the Jacobian
+    1 / (w l), which would make best-of-M favour the smallest proposals."""
+    return box_log_prob(raw, size) + jnp.sum(jnp.log(jnp.maximum(size, MIN_SIZE)))
+
+
+def velocity_proposal_score(
+    raw: jnp.ndarray,
+    velocity: jnp.ndarray,
+    heading: jnp.ndarray,
+    relative: bool | jnp.ndarray,
+    zero_speed: float,
+) -> jnp.ndarray:
+    """Best-of-M score of a moving velocity proposal: its log density over (log speed,
+    direction), the mixture's own coordinates. The density over (vx, vy) carries 1 / s^2,
+    which would make the slowest proposal win. Meaningless for a stationary proposal (a
+    probability, not a density): whether the actor moves is drawn once, with probability
+    1 - pi_0 (`sampling.rollout.sample_attributes`)."""
+    speed_sq = jnp.sum(velocity * velocity)
+    tiny = jnp.finfo(speed_sq.dtype).tiny
+    lp = velocity_log_prob(raw, velocity, heading, relative, zero_speed)
+    return lp + jnp.log(jnp.maximum(speed_sq, tiny))
+
+
 def _sample_std_normal_above(key: jax.Array, a: jnp.ndarray) -> jnp.ndarray:
     """One standard normal draw conditioned on z > a (inverse CDF; Rayleigh tail for a > 8)."""
     k_u, k_e = jax.random.split(key)

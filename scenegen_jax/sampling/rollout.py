@@ -54,7 +54,7 @@ from jax import lax
 
 from scenegen_jax.config import Config
 from scenegen_jax.distributions import (
-    box_log_prob,
+    box_proposal_score,
     heading_log_prob,
     is_relative_direction,
     masked_log_softmax,
@@ -63,7 +63,7 @@ from scenegen_jax.distributions import (
     sample_class,
     sample_heading,
     sample_velocity,
-    velocity_log_prob,
+    velocity_proposal_score,
 )
 from scenegen_jax.model.network import SceneGenNet
 from scenegen_jax.raster.actors import draw_actor, empty_actor_raster
@@ -221,12 +221,18 @@ def sample_attributes(
 ) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
     """Box size, heading and velocity of R actors, each the most likely of M draws.
 
-    Best-of-M (paper sec. 3.3): M proposals per attribute, keep the one with the highest
-    log-likelihood under its own mixture (NaN never wins, ties keep the first); the velocity
-    is drawn given the chosen heading (its direction is relative to it for vehicles and
-    bicyclists). This is `distributions.best_of_m` with the R x M draws flattened into one
-    vmap: nesting a vmap over M inside the vmap over candidates doubled XLA:CPU's compile
-    time of the rollout. Keys: actor r splits keys[r] into (box, heading, velocity) keys,
+    Best-of-M (paper sec. 3.3): M proposals per attribute, keep the most likely under its own
+    mixture (NaN never wins, ties keep the first), with densities in the mixtures' own
+    coordinates: (log width, log length) for boxes (`box_proposal_score`) and (log speed,
+    direction) for velocities (`velocity_proposal_score`). Planar densities would carry the
+    Jacobians 1 / (w l) and 1 / s^2 and make the smallest box and the slowest speed win (with
+    M = 10 every sampled speed fell below 1 m/s). Whether an actor stands is drawn once, by its
+    first velocity proposal (probability pi_0, a probability that is not compared with
+    densities); a moving actor keeps the best of its moving proposals. The velocity is drawn
+    given the chosen heading (its direction is relative to it for vehicles and bicyclists).
+    This is `distributions.best_of_m` with the R x M draws flattened into one vmap: nesting
+    a vmap over M inside the vmap over candidates doubled XLA:CPU's compile time of the
+    rollout. Keys: actor r splits keys[r] into (box, heading, velocity) keys,
     each split into M proposal keys. With M = 1 the single draw is kept (plain sampling).
 
     Pedestrians get the nominal square box (`cfg.pedestrian_size_m`) and the velocity
@@ -261,7 +267,7 @@ def sample_attributes(
         return draws[jnp.arange(r) * m + jnp.argmax(lp, axis=1)]
 
     boxes = jax.vmap(sample_box)(proposal_keys(sub[:, 0]), flat(box_raw))
-    lp = jax.vmap(box_log_prob)(flat(box_raw), boxes) if m > 1 else None
+    lp = jax.vmap(box_proposal_score)(flat(box_raw), boxes) if m > 1 else None
     size = best(boxes, lp)
     heads = jax.vmap(sample_heading)(proposal_keys(sub[:, 1]), flat(heading_raw))
     lp = jax.vmap(heading_log_prob)(flat(heading_raw), heads) if m > 1 else None
@@ -271,8 +277,14 @@ def sample_attributes(
     zero = cfg.zero_speed
     vels = jax.vmap(lambda k, raw, h, rel: sample_velocity(k, raw, h, rel, zero))(
         proposal_keys(sub[:, 2]), flat(velocity_raw), flat(heading), flat(relative))
-    lp = jax.vmap(lambda raw, v, h, rel: velocity_log_prob(raw, v, h, rel, zero))(
-        flat(velocity_raw), vels, flat(heading), flat(relative)) if m > 1 else None
+    lp = None
+    if m > 1:
+        score = jax.vmap(lambda raw, v, h, rel: velocity_proposal_score(raw, v, h, rel, zero))(
+            flat(velocity_raw), vels, flat(heading), flat(relative)).reshape(r, m)
+        moving = (jnp.sum(vels * vels, axis=-1) > zero * zero).reshape(r, m)
+        first = jnp.arange(m) == 0
+        lp = jnp.where(moving[:, :1], jnp.where(moving, score, -jnp.inf),
+                       jnp.where(first, 0.0, -jnp.inf)).reshape(r * m)
     velocity = jnp.nan_to_num(best(vels, lp), nan=0.0, posinf=0.0, neginf=0.0)
 
     speed = jnp.sqrt(jnp.sum(velocity**2, axis=-1))
