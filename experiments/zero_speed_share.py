@@ -1,6 +1,7 @@
 """Share of standing actors (speed below zero_speed) in real val scenes and in samples with
-M = 1 and M = 10 proposals: best-of-M compares the probability of the v = 0 point mass with
-the densities of moving speeds, so it favours standing actors.
+M = 1 and M = 10 proposals. Best-of-M must keep it at pi_0: standing is drawn once and only
+moving proposals compete (`sampling.rollout.sample_attributes`); the earlier sampler, which
+compared the v = 0 point mass's probability with speed densities, raised it to 0.67.
 
   .venv/bin/python experiments/zero_speed_share.py --workdir runs/cpu_map --data runs/cache_cpu_val
 """
