@@ -105,7 +105,7 @@ def cmd_score(args) -> None:
 
     if args.top_k < 0 or (args.top_k and not args.render):
         raise SystemExit("--top-k K needs K >= 0 and --render DIR")
-    cfg, state = load_trained(args.workdir)
+    cfg, state = load_trained(args.workdir, args.step)
     cache = load_cache(args.data)
     cache.check_config(cfg)
     scores = score_cache(state.params, cache, cfg, batch_size=args.batch_size)
@@ -206,7 +206,7 @@ def cmd_sample(args) -> None:
         raise SystemExit("--num and --batch-size must be >= 1")
     if args.proposals is not None and args.proposals < 1:
         raise SystemExit("--proposals must be >= 1")
-    cfg, state = load_trained(args.workdir)
+    cfg, state = load_trained(args.workdir, args.step)
     # Uncommitted copies: restored arrays are committed to a device, and jit compiles a
     # separate executable for committed inputs.
     params = jax.device_put(jax.device_get(state.params))
@@ -364,7 +364,7 @@ def cmd_evaluate(args) -> None:
     from scenegen_jax.eval.evaluate import evaluate, format_table
     from scenegen_jax.train.loop import load_trained
 
-    cfg, state = load_trained(args.workdir)
+    cfg, state = load_trained(args.workdir, args.step)
     cache = load_cache(args.data)
     train_cache = load_cache(args.train_data)
     for c in (cache, train_cache):
@@ -419,6 +419,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     sp = sub.add_parser("score", help="NLL of real scenes under a trained model")
     sp.add_argument("--workdir", required=True)
+    sp.add_argument("--step", type=int, help="checkpoint step to load (default: the latest)")
     sp.add_argument("--data", required=True, help="cache directory to score")
     sp.add_argument("--out", required=True, help="CSV, one row per scene")
     sp.add_argument("--batch-size", type=int, default=8)
@@ -430,6 +431,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     sp = sub.add_parser("sample", help="sample new scenes on the maps of cache scenes")
     sp.add_argument("--workdir", required=True, help="training workdir (config + checkpoints)")
+    sp.add_argument("--step", type=int, help="checkpoint step to load (default: the latest)")
     sp.add_argument("--data", required=True, help="cache whose maps and egos condition the scenes")
     sp.add_argument("--num", type=int, required=True, help="scenes to sample")
     sp.add_argument("--out", required=True, help="output directory")
@@ -453,6 +455,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.set_defaults(func=cmd_sample)
     sp = sub.add_parser("evaluate", help="NLL and MMD of SceneGen and baselines (Table 1)")
     sp.add_argument("--workdir", required=True)
+    sp.add_argument("--step", type=int, help="checkpoint step to load (default: the latest)")
     sp.add_argument("--data", required=True, help="cache of the evaluation split")
     sp.add_argument("--train-data", required=True, help="training cache (Procedural's KDE)")
     sp.add_argument("--num", type=int, default=64, help="conditioning scenes for MMD")

@@ -44,15 +44,26 @@ def _batch(cache, idx):
     return gather_batch(cache, np.asarray(idx), CFG)
 
 
-@pytest.mark.parametrize("chunk_bytes", [None, 1, 3 * 2 * 32 * 32 * 8 * 4])
+@pytest.mark.parametrize(
+    "chunk_bytes, overrides",
+    [
+        (None, {}),
+        (1, {}),
+        (3 * 2 * 32 * 32 * 8 * 4, {}),
+        (None, {"coord_channels": True}),
+        (None, {"coord_channels": True, "map_layers": ()}),
+    ],
+)
 def test_fast_unroll_equals_plain_reference(tiny_train_cache, small_scenes, chunk_bytes,
-                                            monkeypatch):
-    """Backbone chunks of the whole window (default here), 1 step, and 3 steps (uneven)."""
+                                            overrides, monkeypatch):
+    """Backbone chunks of the whole window (default here), 1 step, and 3 steps (uneven);
+    coordinate channels with and without map channels."""
     import scenegen_jax.train.unroll as unroll
 
     if chunk_bytes is not None:
         monkeypatch.setattr(unroll, "HEAD_CHUNK_BYTES", chunk_bytes)
-    cfg = CFG.replace(bptt_window=16)  # one window: the reference has no truncation either
+    # One window: the reference has no truncation either.
+    cfg = CFG.replace(bptt_window=16, **overrides)
     params = init_params(cfg, jax.random.key(1))
     maps, scene = crop_batch(_batch(tiny_train_cache, small_scenes), jnp.array([0.0, 1.0]), cfg)
     fast, valid, _ = jax.jit(lambda p: unroll_terms(p, cfg, maps, scene, None))(params)
@@ -213,6 +224,23 @@ def _params(workdir):
 
     cfg, state = load_trained(workdir)
     return int(state.step), jax.tree.leaves(state.params)
+
+
+def test_load_trained_picks_a_saved_step(tmp_path):
+    from scenegen_jax.train.checkpoint import Checkpointer
+    from scenegen_jax.train.loop import load_trained, save_or_check_config
+
+    workdir = str(tmp_path / "wd")
+    save_or_check_config(workdir, CFG)
+    ckpt = Checkpointer(os.path.join(workdir, "checkpoints"), every=1, keep=5)
+    state = init_state(CFG)
+    for step in (1, 2):
+        ckpt.save(state._replace(step=jnp.asarray(step, state.step.dtype)), force=True)
+    ckpt.close()
+    assert int(load_trained(workdir)[1].step) == 2
+    assert int(load_trained(workdir, 1)[1].step) == 1
+    with pytest.raises(ValueError, match=r"no checkpoint at step 5; saved: \[1, 2\]"):
+        load_trained(workdir, 5)
 
 
 @pytest.mark.slow

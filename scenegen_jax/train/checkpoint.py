@@ -35,10 +35,21 @@ class Checkpointer:
             int(state.step), args=ocp.args.StandardSave(state._asdict()), force=force
         )
 
-    def restore_latest(self, template: TrainState) -> TrainState | None:
-        """The newest checkpoint that restores cleanly, or None when there is none."""
+    def restore_latest(self, template: TrainState, step: int | None = None) -> TrainState | None:
+        """The newest checkpoint that restores cleanly, or None when there is none.
+
+        With `step`, that checkpoint only (ValueError naming the saved steps if it is not
+        there; None if it does not restore).
+        """
         abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, template._asdict())
-        for step in sorted(self.manager.all_steps(), reverse=True):
+        steps = sorted(self.manager.all_steps(), reverse=True)
+        if step is not None:
+            if step not in steps:
+                raise ValueError(
+                    f"{self.directory}: no checkpoint at step {step}; saved: {sorted(steps)}"
+                )
+            steps = [step]
+        for step in steps:
             try:
                 restored = self.manager.restore(step, args=ocp.args.StandardRestore(abstract))
             except Exception as e:  # orbax raises many types for damaged files

@@ -125,11 +125,12 @@ def train(
     return state
 
 
-def load_trained(workdir: str) -> tuple[Config, TrainState]:
-    """(config, latest readable train state) of a training workdir."""
+def load_trained(workdir: str, step: int | None = None) -> tuple[Config, TrainState]:
+    """(config, train state) of a training workdir: the latest readable checkpoint, or the
+    one saved at `step`."""
     cfg = load_workdir_config(workdir)
     ckpt = Checkpointer(os.path.join(workdir, "checkpoints"), every=1)
-    state = ckpt.restore_latest(jax.eval_shape(lambda: init_state(cfg)))
+    state = ckpt.restore_latest(jax.eval_shape(lambda: init_state(cfg)), step)
     ckpt.close()
     if state is None:
         raise FileNotFoundError(f"{workdir}/checkpoints: no readable checkpoint")
