@@ -54,11 +54,6 @@ class Config:
       pedestrian_size_m: nominal pedestrian footprint side, m (pedestrians are points).
       ego_size_m: (width, length) of the ego box, m.
       rotate_augment: random rotation about the ego during training.
-      coord_channels: two constant input channels, the pixel centres' (x, y) scaled to
-        [-1, 1] (beyond the paper, "CoordConv"): they tell the convolutions where a pixel is
-        in the grid, which the canonical row-major order depends on; otherwise only the
-        zero padding at the grid's border carries it. Part of the once-per-scene input
-        gates, so they cost nothing per step.
       seed: base random seed.
     """
 
@@ -81,7 +76,6 @@ class Config:
     pedestrian_size_m: float = 0.6
     ego_size_m: tuple[float, float] = (1.95, 4.9)
     rotate_augment: bool = True
-    coord_channels: bool = False
     seed: int = 0
 
     def __post_init__(self):

@@ -3,9 +3,8 @@ five-layer conv backbone, a class MLP, per-class location CNNs and per-class att
 
 The network is split into methods so the teacher-forced unroll can be fast (see
 `scenegen_jax.train.unroll`): the first ConvLSTM layer's input convolution is linear in its
-input, so conv(map ++ coords ++ actors ++ h1) = conv_map(map) + conv_coord(coords) +
-conv_actors(actors) + conv_rec(h1). The constant part (map, and the coordinate channels when
-`cfg.coord_channels`) is computed once per scene. The backbone and heads do not feed back into the
+input, so conv(map ++ actors ++ h1) = conv_map(map) + conv_actors(actors) + conv_rec(h1).
+The map part is computed once per scene. The backbone and heads do not feed back into the
 recurrence, so the unroll can run them on chunks of steps.
 
 All arrays are NHWC; leading axes beyond one batch axis are flattened by the caller.
@@ -19,7 +18,7 @@ import jax.numpy as jnp
 
 from scenegen_jax.config import Config
 from scenegen_jax.raster.actors import ACTOR_CHANNELS
-from scenegen_jax.scene import NUM_CLASSES, pixel_centers
+from scenegen_jax.scene import NUM_CLASSES
 
 NUM_ACTOR_CHANNELS = len(ACTOR_CHANNELS)
 
@@ -29,11 +28,6 @@ def attribute_sizes(k: int) -> tuple[int, int, int]:
     from scenegen_jax.distributions import BOX_PARAMS, HEADING_PARAMS, VELOCITY_PARAMS
 
     return BOX_PARAMS(k), HEADING_PARAMS(k), VELOCITY_PARAMS(k)
-
-
-def coordinate_raster(cfg: Config) -> jnp.ndarray:
-    """[H, W, 2] pixel-centre (x, y) scaled to [-1, 1]: the `coord_channels` input."""
-    return jnp.asarray(pixel_centers(cfg) / (cfg.region_m / 2))
 
 
 def conv(x, w, b=None):
@@ -145,8 +139,6 @@ class SceneGenNet(nn.Module):
 
         if cm:
             self.lstm1_map = self.param("lstm1_map", conv_init, (5, 5, cm, 4 * h))
-        if cfg.coord_channels:
-            self.lstm1_coord = self.param("lstm1_coord", conv_init, (5, 5, 2, 4 * h))
         self.lstm1_act = self.param("lstm1_act", conv_init, (5, 5, NUM_ACTOR_CHANNELS, 4 * h))
         self.lstm1_rec = self.param("lstm1_rec", conv_init, (5, 5, h, 4 * h))
         self.lstm1_b = self.param("lstm1_b", lstm_bias, (4 * h,))
@@ -202,17 +194,11 @@ class SceneGenNet(nn.Module):
 
     # ------------------------------------------------------------------ recurrence
     def map_gates(self, map_raster):
-        """Constant share of ConvLSTM layer 1's input gates, with its bias: map channels and
-        coordinate channels (those present in the config), [B,H,W,Cm] -> [B,H,W,4h]."""
-        cfg = self.cfg
-        b, hh, ww, _ = map_raster.shape
-        if cfg.map_channels:
-            gates = conv(map_raster, self.lstm1_map, self.lstm1_b)
-        else:
-            gates = jnp.broadcast_to(self.lstm1_b, (b, hh, ww, 4 * cfg.hidden))
-        if cfg.coord_channels:
-            gates = gates + conv(coordinate_raster(cfg)[None], self.lstm1_coord)
-        return gates
+        """Map share of ConvLSTM layer 1's input gates (with its bias): [B,H,W,Cm] -> [B,H,W,4h]."""
+        if not self.cfg.map_channels:
+            b, hh, ww, _ = map_raster.shape
+            return jnp.broadcast_to(self.lstm1_b, (b, hh, ww, 4 * self.cfg.hidden))
+        return conv(map_raster, self.lstm1_map, self.lstm1_b)
 
     def actor_gates(self, actor_raster):
         """Actor share of layer 1's input gates: [B,H,W,9] -> [B,H,W,4h] (no bias)."""

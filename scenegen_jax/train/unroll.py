@@ -31,7 +31,7 @@ import jax.numpy as jnp
 
 from scenegen_jax.config import Config
 from scenegen_jax.distributions import TERMS, HeadOutputs, actor_log_likelihood
-from scenegen_jax.model.network import SceneGenNet, conv, coordinate_raster, lstm_gates
+from scenegen_jax.model.network import SceneGenNet, conv, lstm_gates
 from scenegen_jax.raster.actors import draw_actor, empty_actor_raster
 from scenegen_jax.scene import STOP, Actors, Scene, bin_index
 
@@ -180,7 +180,7 @@ def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | 
 
 def reference_step_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | None):
     """The same terms computed the obvious way: a Python loop over steps, each step a full
-    ConvLSTM step on the concatenated input (map ++ coords ++ actors ++ h1); for tests only."""
+    ConvLSTM step on the concatenated input (map ++ actors ++ h1); for tests only."""
     net = SceneGenNet(cfg)
 
     def apply(method, *args):
@@ -189,13 +189,9 @@ def reference_step_terms(params, cfg: Config, maps, scene: Scene, hard_negatives
     b = maps.shape[0]
     w_in = jnp.concatenate(
         ([params["lstm1_map"]] if cfg.map_channels else [])
-        + ([params["lstm1_coord"]] if cfg.coord_channels else [])
         + [params["lstm1_act"], params["lstm1_rec"]],
         axis=2,
     )
-    if cfg.coord_channels:
-        coords = coordinate_raster(cfg)
-        maps = jnp.concatenate([maps, jnp.broadcast_to(coords, (b, *coords.shape))], axis=-1)
     n_actors = jnp.sum(scene.actors.valid, axis=1)
     steps = int(jnp.max(n_actors)) + 1
     actors = _pad_slots(scene.actors, max(steps, scene.actors.cls.shape[1]))
