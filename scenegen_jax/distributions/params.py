@@ -16,15 +16,11 @@ raw head outputs. With K mixture components:
            (`velocity_components`), box and heading have one component.
 
 Scales are clamped (`LOG_VAR_RANGE`, `LOG_SIGMA_RANGE`, `LOG_KAPPA_RANGE`) so extreme head
-outputs give finite log-likelihoods; the clamp passes the gradient through (`clamp`). A plain
-clip has zero gradient outside its range: a head whose log concentration fell below the range
-early in training (uniform headings, the likeliest answer before the features carry any
-orientation) never left it, and whole heading heads stayed exactly uniform (log 2 pi nats).
+outputs give finite log-likelihoods and gradients; outside the range the gradient is zero.
 """
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 from flax import struct
 
@@ -134,12 +130,6 @@ class VelocityParams:
     log_kappa: jnp.ndarray
 
 
-def clamp(x: jnp.ndarray, lo: float, hi: float) -> jnp.ndarray:
-    """x clipped to [lo, hi] in value, with the identity's gradient (straight through), so an
-    output outside the range is still pulled back by the loss."""
-    return x + jax.lax.stop_gradient(jnp.clip(x, lo, hi) - x)
-
-
 def unit_biternion(cs: jnp.ndarray) -> jnp.ndarray:
     """Normalises [..., 2] (cos, sin) pairs to unit length (finite gradient at 0)."""
     return cs * jnp.reciprocal(jnp.sqrt(jnp.sum(cs * cs, axis=-1, keepdims=True) + BITERNION_EPS))
@@ -151,7 +141,7 @@ def split_box(raw: jnp.ndarray) -> BoxParams:
     return BoxParams(
         logits=raw[:k],
         mu=raw[k : 3 * k].reshape(k, 2),
-        log_var=clamp(raw[3 * k : 5 * k].reshape(k, 2), *LOG_VAR_RANGE),
+        log_var=jnp.clip(raw[3 * k : 5 * k].reshape(k, 2), *LOG_VAR_RANGE),
         rho=jnp.tanh(raw[5 * k : 6 * k]) * RHO_SCALE,
     )
 
@@ -162,7 +152,7 @@ def split_heading(raw: jnp.ndarray) -> VonMisesParams:
     return VonMisesParams(
         logits=raw[:k],
         direction=unit_biternion(raw[k : 3 * k].reshape(k, 2)),
-        log_kappa=clamp(raw[3 * k : 4 * k], *LOG_KAPPA_RANGE),
+        log_kappa=jnp.clip(raw[3 * k : 4 * k], *LOG_KAPPA_RANGE),
     )
 
 
@@ -175,7 +165,7 @@ def split_velocity(raw: jnp.ndarray) -> VelocityParams:
     return VelocityParams(
         logits=raw[:k],
         speed_mu=raw[k : k + m],
-        speed_log_sigma=clamp(raw[k + m : k + 2 * m], *LOG_SIGMA_RANGE),
+        speed_log_sigma=jnp.clip(raw[k + m : k + 2 * m], *LOG_SIGMA_RANGE),
         direction=unit_biternion(raw[k + 2 * m : k + 4 * m].reshape(m, 2)),
-        log_kappa=clamp(raw[k + 4 * m : k + 5 * m], *LOG_KAPPA_RANGE),
+        log_kappa=jnp.clip(raw[k + 4 * m : k + 5 * m], *LOG_KAPPA_RANGE),
     )
