@@ -54,6 +54,9 @@ class Config:
       pedestrian_size_m: nominal pedestrian footprint side, m (pedestrians are points).
       ego_size_m: (width, length) of the ego box, m.
       rotate_augment: random rotation about the ego during training.
+      map_dropout: probability that a training scene's map channels are all zeroed (beyond the
+        paper): the model must then place actors from the actors alone, as a model without a
+        map does, instead of only memorising where vehicles stand on the training maps.
       seed: base random seed.
     """
 
@@ -76,6 +79,7 @@ class Config:
     pedestrian_size_m: float = 0.6
     ego_size_m: tuple[float, float] = (1.95, 4.9)
     rotate_augment: bool = True
+    map_dropout: float = 0.0
     seed: int = 0
 
     def __post_init__(self):
@@ -86,6 +90,8 @@ class Config:
             )
         if self.grid_size <= 0 or self.m_per_px <= 0:
             raise ValueError("grid_size and m_per_px must be positive")
+        if not 0.0 <= self.map_dropout <= 1.0:
+            raise ValueError(f"map_dropout must be in [0, 1], got {self.map_dropout}")
 
     @property
     def region_m(self) -> float:

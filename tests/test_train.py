@@ -174,6 +174,19 @@ def test_empty_scene_is_one_stop_step(tiny_train_cache, small_scenes):
     assert all(np.all(np.isfinite(g)) for g in jax.tree.leaves(grads))
 
 
+def test_map_dropout_trains_as_on_a_blank_map(tiny_train_cache, small_scenes):
+    batch = jax.device_put(_batch(tiny_train_cache, small_scenes))
+    blank = batch._replace(canvas=jnp.zeros_like(batch.canvas))
+    state = init_state(CFG)
+    _, dropped = train_step(state, batch, CFG.replace(map_dropout=1.0))
+    _, no_map = train_step(state, blank, CFG)
+    _, with_map = train_step(state, batch, CFG)
+    np.testing.assert_allclose(dropped["loss"], no_map["loss"], rtol=1e-6)
+    assert abs(float(dropped["loss"]) - float(with_map["loss"])) > 1e-3
+    with pytest.raises(ValueError, match="map_dropout"):
+        CFG.replace(map_dropout=1.5)
+
+
 def test_nan_batch_is_rejected_before_the_optimizer(tiny_train_cache, small_scenes):
     batch = _batch(tiny_train_cache, small_scenes)
     batch.actors.velocity[1, 0, 0] = np.nan

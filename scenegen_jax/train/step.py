@@ -104,6 +104,9 @@ def train_step(state: TrainState, batch: Batch, cfg: Config) -> tuple[TrainState
     else:
         thetas = jnp.zeros((b,))
     maps, scene = crop_batch(batch, thetas, cfg)
+    if cfg.map_dropout > 0:
+        keep = jax.random.uniform(jax.random.fold_in(key, 1), (b, 1, 1, 1)) >= cfg.map_dropout
+        maps = maps * keep
     (loss, stats), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params, cfg, maps, scene)
     updates, opt_state = make_optimizer(cfg).update(grads, state.opt_state, state.params)
     params = optax.apply_updates(state.params, updates)
