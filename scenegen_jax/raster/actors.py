@@ -69,6 +69,15 @@ def _overlap_1d(u: jnp.ndarray, half_len: jnp.ndarray, d: float) -> jnp.ndarray:
     return jnp.clip(hi - lo, 0.0, None) / d
 
 
+def window_origin(center: jnp.ndarray, p: int, cfg: Config) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """(row0, col0) int32: top-left pixel of the p x p window around `center` [..., 2] (m),
+    shifted to lie inside the grid (p <= H)."""
+    h = cfg.grid_size
+    row, col = pixel_of(jnp.asarray(center, jnp.float32), cfg)
+    return (jnp.clip(row - p // 2, 0, h - p).astype(jnp.int32),
+            jnp.clip(col - p // 2, 0, h - p).astype(jnp.int32))
+
+
 def box_coverage_window(
     center: jnp.ndarray,
     size: jnp.ndarray,
@@ -91,7 +100,6 @@ def box_coverage_window(
       coverage float32 [P, P] in [0, 1], and (row0, col0) int32: the window's top-left pixel
       in the grid (the window lies inside the grid; P = `window_size(cfg, max_box_m)`).
     """
-    h = cfg.grid_size
     p = window_size(cfg, max_box_m)
     mpp = cfg.m_per_px
     half_region = cfg.region_m / 2
@@ -99,9 +107,7 @@ def box_coverage_window(
     size = jnp.asarray(size, jnp.float32)
     heading = jnp.asarray(heading, jnp.float32)
 
-    row, col = pixel_of(center, cfg)
-    row0 = jnp.clip(row - p // 2, 0, h - p).astype(jnp.int32)
-    col0 = jnp.clip(col - p // 2, 0, h - p).astype(jnp.int32)
+    row0, col0 = window_origin(center, p, cfg)
 
     # Sub-cell centres along one axis, in pixel units from the window's first pixel edge.
     sub = (jnp.arange(p * samples, dtype=jnp.float32) + 0.5) / samples

@@ -12,7 +12,8 @@ convolution gradients inside while loops and conditionals 10-20x slower than at 
 Inside a window (the fast path; measurements in bench/README.md):
   * the map share of layer 1's input convolution is computed once per scene (`map_gates`),
     so its weight gradient is one convolution over the gradients summed over steps;
-  * per step: the actor share of layer 1's input gates (`actor_gates`) and the recurrence;
+  * per step: the actor share of layer 1's input gates, updated by a convolution over the
+    new actor's drawing window only (`next_actor_gates`), and the recurrence;
   * the backbone and the conv heads run on chunks of consecutive steps whose activations fit
     in cache (`head_chunk`; one step at the paper's width and grid): batching a whole window
     made XLA:CPU's convolutions 2-4x slower once the batch left the cache;
@@ -32,7 +33,7 @@ import jax.numpy as jnp
 from scenegen_jax.config import Config
 from scenegen_jax.distributions import TERMS, HeadOutputs, actor_log_likelihood
 from scenegen_jax.model.network import SceneGenNet, conv, lstm_gates
-from scenegen_jax.raster.actors import draw_actor, empty_actor_raster
+from scenegen_jax.raster.actors import draw_actor, empty_actor_raster, window_origin, window_size
 from scenegen_jax.scene import STOP, Actors, Scene, bin_index
 
 
@@ -96,6 +97,38 @@ def head_terms(net: SceneGenNet, params, heads, targets: Actors, is_stop, cfg: C
     return jax.vmap(ll)(head, targets, is_stop)
 
 
+def next_actor_gates(net: SceneGenNet, params, gates, before, after, position):
+    """Actor share of layer 1's input gates after one more actor is drawn, updated locally.
+
+    The convolution is linear and drawing an actor changes the raster only inside its
+    drawing window, so the new gates are the old ones plus the convolution of the change over
+    that window with a margin of the kernel's half-width: exact, at a fraction of a full-grid
+    convolution. Falls back to the full convolution when the window covers the grid.
+
+    Args:
+      gates: [B, H, W, 4h] actor gates of `before`.
+      before, after: [B, H, W, 9] actor rasters before and after the actor was drawn.
+      position: [B, 2] the drawn actor's position (m); invalid actors leave the raster as is.
+    """
+    cfg = net.cfg
+    margin = params["lstm1_act"].shape[0] // 2
+    p = window_size(cfg) + 2 * margin
+    if p >= cfg.grid_size:
+        return net.apply({"params": params}, after, method=SceneGenNet.actor_gates)
+    row0, col0 = window_origin(position, p, cfg)
+
+    def window(x, r, c):
+        return jax.lax.dynamic_slice(x, (r, c, 0), (p, p, x.shape[-1]))
+
+    change = jax.vmap(window)(after - before, row0, col0)
+    delta = net.apply({"params": params}, change, method=SceneGenNet.actor_gates)
+
+    def add(g, d, r, c):
+        return jax.lax.dynamic_update_slice(g, window(g, r, c) + d, (r, c, 0))
+
+    return jax.vmap(add)(gates, delta, row0, col0)
+
+
 def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | None):
     """Log-likelihood terms of every step of a batch of scenes, teacher forced.
 
@@ -142,12 +175,16 @@ def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | 
         bins = bin_index(targets.position, cfg)  # [B, W]
         chunk = head_chunk(cfg, b)
         heads = []
+        actor_gates = apply(SceneGenNet.actor_gates, rasters[0])
         for c0 in range(0, w, chunk):
             steps = range(c0, min(c0 + chunk, w))
             h2s = []
             for j in steps:
-                gates = apply(SceneGenNet.actor_gates, rasters[j]) + map_gates
-                state, h2 = apply(SceneGenNet.recur, state, gates)
+                if j > 0:
+                    actor_gates = next_actor_gates(
+                        net, params, actor_gates, rasters[j - 1], rasters[j], win.position[:, j - 1]
+                    )
+                state, h2 = apply(SceneGenNet.recur, state, actor_gates + map_gates)
                 h2s.append(h2)
             f = apply(SceneGenNet.features, jnp.concatenate(h2s))  # [n * B, ...] step-major
             cls = jnp.swapaxes(targets.cls[:, c0 : c0 + chunk], 0, 1).reshape(-1)
