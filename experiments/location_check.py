@@ -54,10 +54,10 @@ def drivable_masks(cache, cfg) -> np.ndarray:
     ])
 
 
-def vehicle_steps(cache, cfg) -> tuple[np.ndarray, np.ndarray]:
-    """(keep [S, N]: valid vehicles inside the region, bins [S, N]) of the unrotated crops,
-    slot t being teacher-forced step t."""
-    a = cropped(cache, cfg)[1].actors
+def vehicle_steps(scene, cfg) -> tuple[np.ndarray, np.ndarray]:
+    """(keep [S, N]: valid vehicles inside the region, bins [S, N]) of cropped scenes, slot t
+    being teacher-forced step t."""
+    a = scene.actors
     pos = jnp.asarray(a.position)
     keep = np.asarray(in_region(pos, cfg) & a.valid & (a.cls == VEHICLE))
     return keep, np.asarray(bin_index(pos, cfg))
@@ -68,12 +68,11 @@ def cropped(cache, cfg):
     return crop_batch(gather_batch(cache, np.arange(len(cache)), cfg), jnp.zeros(len(cache)), cfg)
 
 
-def vehicle_location_log_probs(params, cfg, cache) -> np.ndarray:
+def vehicle_location_log_probs(params, cfg, maps, scene) -> np.ndarray:
     """[S, N, H*W] teacher-forced vehicle-head location log-probabilities at every step (the
     unroll's recurrence written as a plain loop: analysis only, the scores come from
     `score_cache`)."""
     net = SceneGenNet(cfg)
-    maps, scene = cropped(cache, cfg)
 
     @jax.jit
     def one(params, maps, scene):
@@ -97,15 +96,15 @@ def vehicle_location_log_probs(params, cfg, cache) -> np.ndarray:
         return jnp.stack(out, axis=1)
 
     chunks = [jax.tree.map(lambda x, i=i: x[i : i + 8], (maps, scene))
-              for i in range(0, len(cache), 8)]
+              for i in range(0, maps.shape[0], 8)]
     return np.concatenate([np.asarray(one(params, *c)) for c in chunks])
 
 
-def drivable_split(params, cfg, cache, drivable) -> dict:
+def drivable_split(params, cfg, maps, scene, drivable) -> dict:
     """Mean share of the vehicle location mass on drivable bins and the location NLL per
     on-drivable vehicle given the drivable area (nats, density per m^2)."""
-    logp = vehicle_location_log_probs(params, cfg, cache)
-    keep, bins = vehicle_steps(cache, cfg)
+    logp = vehicle_location_log_probs(params, cfg, maps, scene)
+    keep, bins = vehicle_steps(scene, cfg)
     mass, given = [], []
     for s, t in zip(*np.nonzero(keep), strict=True):
         m = float(np.exp(logp[s, t])[drivable[s]].sum())
@@ -116,11 +115,11 @@ def drivable_split(params, cfg, cache, drivable) -> dict:
             "location_nll_given_drivable": float(np.mean(given))}
 
 
-def drivable_uniform(cache, cfg, drivable) -> tuple[float, float]:
+def drivable_uniform(scene, cfg, drivable) -> tuple[float, float]:
     """(mean location NLL per vehicle under uniform-over-drivable, share of vehicles on it)."""
-    keep, bins = vehicle_steps(cache, cfg)
+    keep, bins = vehicle_steps(scene, cfg)
     nll, on = [], []
-    for i in range(len(cache)):
+    for i in range(len(bins)):
         b = bins[i][keep[i]]
         nll += [np.log(drivable[i].sum() * cfg.bin_area)] * len(b)
         on += list(drivable[i][b])
@@ -139,10 +138,11 @@ def main() -> None:
     for w in args.workdirs:
         cfg, state = load_trained(w)
         drivable = drivable_masks(sub, cfg)
+        maps, scene = cropped(sub, cfg)
         s = summarize_scores(score_cache(state.params, sub, cfg, progress=False))
         out[w] = {"step": int(state.step), "location_nll_per_vehicle": s[
-            "location_nll_per_vehicle"], **drivable_split(state.params, cfg, sub, drivable)}
-    nll, on = drivable_uniform(sub, cfg, drivable)
+            "location_nll_per_vehicle"], **drivable_split(state.params, cfg, maps, scene, drivable)}
+    nll, on = drivable_uniform(scene, cfg, drivable)
     out["uniform_over_drivable"] = {"location_nll_per_vehicle": nll, "vehicles_on_drivable": on}
     print(json.dumps(out, indent=1))
 

@@ -120,7 +120,7 @@ def next_actor_gates(net: SceneGenNet, params, gates, before, after, position):
     def window(x, r, c):
         return jax.lax.dynamic_slice(x, (r, c, 0), (p, p, x.shape[-1]))
 
-    change = jax.vmap(window)(after - before, row0, col0)
+    change = jax.vmap(window)(after, row0, col0) - jax.vmap(window)(before, row0, col0)
     delta = net.apply({"params": params}, change, method=SceneGenNet.actor_gates)
 
     def add(g, d, r, c):
