@@ -19,9 +19,10 @@ reference twin; it is measured alone (train, score and sampling with the trained
 real validation maps, `--workdir`).
 
 Sampling. The reference times one generation step per scene (16 actors already placed);
-our rollout generates whole scenes, so we report ms per scene-step = wall time / (B x loop
-iterations), where a vmapped batch runs as many iterations as its longest scene (finished
-scenes idle: that cost is ours). Random weights would stop at once, so the stop logit is
+our rollout generates whole scenes, so we report ms per scene-step = wall time / the scene
+steps generated (each scene's actors, plus its stopping step). Scenes vmapped together run as
+many iterations as the longest of them (finished scenes idle: that cost is ours); on CPU
+`sample_batch` runs the scenes one by one (`parallel` = 1). Random weights would stop at once, so the stop logit is
 lowered by 10 (scenes then end when the ordering mask leaves no bin, or at max_actors).
 """
 
@@ -243,8 +244,9 @@ def sample_case(cfg, params, args) -> dict:
         max_actors=cfg.max_actors,
         actors_per_scene=float(count.mean()),
         loop_iterations=int(iterations.max()),
+        scene_steps=int(iterations.sum()),
         scenes_per_s=b / r["median_s"],
-        per_scene_step_ms=1e3 * r["median_s"] / (b * int(iterations.max())),
+        per_scene_step_ms=1e3 * r["median_s"] / int(iterations.sum()),
         trained_model=bool(args.workdir),
     )
     return r

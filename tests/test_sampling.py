@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import itertools
 import json
 import math
 import os
@@ -42,6 +43,7 @@ from scenegen_jax.sampling import (
     MIN_SIZE_M,
     NO_BIN,
     STOP_TOKEN,
+    NetworkModel,
     actor_records,
     actors_from_records,
     batch_inputs,
@@ -226,6 +228,9 @@ class FakeModel:
 
     def actor_gates(self, params, actor_raster):
         return jnp.zeros((1, 1, 1, 1))
+
+    def next_actor_gates(self, params, gates, before, after, position):
+        return gates
 
     def recur(self, params, state, gates):
         return state + 1, jnp.full((1, 1, 1, 1), state, jnp.float32)
@@ -465,9 +470,9 @@ def real_inputs(val_cache):
     return params, np.stack(maps), jax.tree.map(lambda *x: np.stack(x), *egos)
 
 
-def run_real(params, maps, egos, key, given=None, caps=None, num_per_map=2):
+def run_real(params, maps, egos, key, given=None, caps=None, num_per_map=2, parallel=None):
     return jax.tree.map(np.asarray, sample_scenes(key, params, TINY, maps, egos, given,
-                                                  num_per_map, caps))
+                                                  num_per_map, caps, parallel=parallel))
 
 
 def check_scene(actors: Actors, ego: Actors, cfg, caps=None):
@@ -514,6 +519,29 @@ def test_real_network_scene_properties_and_reproducibility(real_inputs):
     assert sum(counts) >= 100 and rejected > 0, (counts, rejected, reasons)
 
 
+@dataclasses.dataclass(frozen=True)
+class FullGridActorGates(NetworkModel):
+    """The network with the actor gates recomputed over the whole grid at every step."""
+
+    def next_actor_gates(self, params, gates, before, after, position):
+        return self.actor_gates(params, after)
+
+
+def test_real_network_local_actor_gates_equal_full_grid(real_inputs):
+    # TINY's drawing window (11 px + 2 x 2 px margins) is smaller than its 32 px grid, so
+    # the rollout updates the actor gates locally; recomputing them in full gives the same scenes.
+    params, maps, egos = real_inputs
+    key = jax.random.key(5)
+    local = run_real(params, maps, egos, key)
+    full = jax.tree.map(np.asarray, sample_scenes(key, params, TINY, maps, egos, num_per_map=2,
+                                                  model=FullGridActorGates(TINY)))
+    assert local.actors.valid.sum() >= 20
+    np.testing.assert_array_equal(local.actors.cls, full.actors.cls)
+    np.testing.assert_array_equal(local.actors.valid, full.actors.valid)
+    np.testing.assert_array_equal(bins_of(local.actors, TINY), bins_of(full.actors, TINY))
+    np.testing.assert_allclose(local.actors.size, full.actors.size, rtol=1e-5, atol=1e-5)
+
+
 def test_real_network_given_actors_and_batch_equals_single_calls(real_inputs, val_cache):
     params, maps, egos = real_inputs
     from scenegen_jax.data.cache import cached_scene
@@ -538,19 +566,23 @@ def test_real_network_given_actors_and_batch_equals_single_calls(real_inputs, va
             for field in ("cls", "position", "size", "heading", "velocity", "valid"):
                 np.testing.assert_array_equal(getattr(a, field)[:g], getattr(given, field)[:g])
 
-    # Each scene of the vmapped [2, 2] batch equals a single-scene call with its key. The
+    # Each scene of the [2, 2] batch equals a single-scene call with its key, whether the
+    # scenes run one by one (the CPU default), three at a time (the last group padded) or all
+    # four vmapped. The
     # discrete outcome is identical; floats may differ in the last bits (XLA vectorises the
     # attribute MLP and mixture math differently at other batch shapes; positions are
     # bin-corner + offset - half region, whose cancellation leaves ~1e-5 m).
     keys = scene_keys(key, 2, 2)
     given_one, caps_one = batch_inputs(TINY, 1, given)
-    for b in range(2):
-        for s in range(2):
-            one = sample_batch(keys[b:b + 1, s:s + 1], params, maps[b:b + 1],
-                               jax.tree.map(lambda x, b=b: x[b:b + 1], egos), given_one, caps_one,
-                               cfg=TINY, proposals=None, heatmap_steps=HEATMAP_STEPS)
-            one = jax.tree.map(lambda x: np.asarray(x)[0, 0], one)
-            want = slot(out, b, s)
+    batches = [out] + [run_real(params, maps, egos, key, given=given_b, parallel=p)
+                       for p in (3, 4)]
+    for b, s in itertools.product(range(2), range(2)):
+        one = sample_batch(keys[b:b + 1, s:s + 1], params, maps[b:b + 1],
+                           jax.tree.map(lambda x, b=b: x[b:b + 1], egos), given_one, caps_one,
+                           cfg=TINY, proposals=None, heatmap_steps=HEATMAP_STEPS)
+        one = jax.tree.map(lambda x: np.asarray(x)[0, 0], one)
+        for batch in batches:
+            want = slot(batch, b, s)
             for field in ("cls", "valid"):
                 np.testing.assert_array_equal(getattr(one.actors, field),
                                               getattr(want.actors, field))

@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 
 from scenegen_jax.config import Config
-from scenegen_jax.raster.actors import ACTOR_CHANNELS
+from scenegen_jax.raster.actors import ACTOR_CHANNELS, window_origin, window_size
 from scenegen_jax.scene import NUM_CLASSES
 
 NUM_ACTOR_CHANNELS = len(ACTOR_CHANNELS)
@@ -203,6 +203,39 @@ class SceneGenNet(nn.Module):
     def actor_gates(self, actor_raster):
         """Actor share of layer 1's input gates: [B,H,W,9] -> [B,H,W,4h] (no bias)."""
         return conv(actor_raster, self.lstm1_act)
+
+    def next_actor_gates(self, gates, before, after, position):
+        """Actor share of layer 1's input gates after one more actor is drawn, updated locally.
+
+        The convolution is linear and drawing an actor changes the raster only inside its
+        drawing window, so the new gates are the old ones plus the convolution of the change
+        over that window with a margin of the kernel's half-width: exact, at a fraction of a
+        full-grid convolution. Falls back to the full convolution when the window covers the
+        grid.
+
+        Args:
+          gates: [B, H, W, 4h] actor gates of `before`.
+          before, after: [B, H, W, 9] actor rasters before and after the actor was drawn.
+          position: [B, 2] the drawn actor's position (m); an invalid actor leaves the raster
+            (and so the gates) as they are.
+        """
+        cfg = self.cfg
+        margin = self.lstm1_act.shape[0] // 2
+        p = window_size(cfg) + 2 * margin
+        if p >= cfg.grid_size:
+            return self.actor_gates(after)
+        row0, col0 = window_origin(position, p, cfg)
+
+        def window(x, r, c):
+            return jax.lax.dynamic_slice(x, (r, c, 0), (p, p, x.shape[-1]))
+
+        change = jax.vmap(window)(after, row0, col0) - jax.vmap(window)(before, row0, col0)
+        delta = self.actor_gates(change)
+
+        def add(g, d, r, c):
+            return jax.lax.dynamic_update_slice(g, window(g, r, c) + d, (r, c, 0))
+
+        return jax.vmap(add)(gates, delta, row0, col0)
 
     def recur(self, state, input_gates):
         """One ConvLSTM step given layer 1's input gates [B,H,W,4h]; returns (state, h2)."""

@@ -10,7 +10,9 @@ the per-scene results. `sample_batch` / `sample_scenes` vmap it over scenes and 
 
 One step t (key `fold_in(key, t)`):
   1. Input gates = map gates (computed once per scene before the loop: the map is constant)
-     + actor gates of the current actor raster; ConvLSTM step; backbone features.
+     + actor gates of the current actor raster (carried, and updated after each step by a
+     convolution over the new actor's drawing window only: `SceneGenNet.next_actor_gates`);
+     ConvLSTM step; backbone features.
   2. Class from the categorical over (vehicle, pedestrian, bicyclist, stop); classes at their
      cap get zero mass. STOP ends the scene.
   3. Location: the class's logits masked to bins >= the previous actor's bin (canonical
@@ -106,6 +108,8 @@ class Model(Protocol):
     def initial_state(self, params: Any) -> Any: ...
     def map_gates(self, params: Any, map_raster: jnp.ndarray) -> jnp.ndarray: ...
     def actor_gates(self, params: Any, actor_raster: jnp.ndarray) -> jnp.ndarray: ...
+    def next_actor_gates(self, params: Any, gates: jnp.ndarray, before: jnp.ndarray,
+                         after: jnp.ndarray, position: jnp.ndarray) -> jnp.ndarray: ...
     def recur(self, params: Any, state: Any, gates: jnp.ndarray) -> tuple[Any, jnp.ndarray]: ...
     def features(self, params: Any, h: jnp.ndarray) -> jnp.ndarray: ...
     def class_logits(self, params: Any, f: jnp.ndarray) -> jnp.ndarray: ...
@@ -131,6 +135,9 @@ class NetworkModel:
     def actor_gates(self, params, actor_raster):
         return self._apply(params, SceneGenNet.actor_gates, actor_raster)
 
+    def next_actor_gates(self, params, gates, before, after, position):
+        return self._apply(params, SceneGenNet.next_actor_gates, gates, before, after, position)
+
     def recur(self, params, state, gates):
         return self._apply(params, SceneGenNet.recur, state, gates)
 
@@ -141,7 +148,9 @@ class NetworkModel:
         return self._apply(params, SceneGenNet.class_logits, f)
 
     def location_logits(self, params, f, cls):
-        return self._apply(params, SceneGenNet.location_logits, f, cls)
+        # One example: plain convolutions with the class's kernels (under vmap they become a
+        # grouped convolution, with the same values).
+        return self._apply(params, SceneGenNet.location_logits, f, cls, True)
 
     def attributes(self, params, feat, cls):
         return self._apply(params, SceneGenNet.attributes, feat, cls)
@@ -154,6 +163,8 @@ class SamplerState:
     Attributes:
       lstm: recurrent state of the model (for SceneGenNet ((h1, c1), (h2, c2)), [1, H, W, h]).
       raster: float32 [H, W, 9] actor raster of the ego and the actors so far.
+      actor_gates: the model's actor share of layer 1's input gates for `raster`
+        ([1, H, W, 4h] for SceneGenNet), updated locally as each actor is drawn.
       actors: Actors [N], slots < count filled in canonical order.
       count: int32 [] actors placed; also the step index (each step places one or ends).
       prev_bin: int32 [] bin of the last actor (0 before the first).
@@ -168,6 +179,7 @@ class SamplerState:
 
     lstm: Any
     raster: jnp.ndarray
+    actor_gates: jnp.ndarray
     actors: Actors
     count: jnp.ndarray
     prev_bin: jnp.ndarray
@@ -439,7 +451,7 @@ def rollout(
     def step(state: SamplerState) -> SamplerState:
         t = state.count
         k_class, k_place = jax.random.split(jax.random.fold_in(key, t))
-        gates = map_gates + model.actor_gates(params, state.raster[None])
+        gates = map_gates + state.actor_gates
         lstm, h = model.recur(params, state.lstm, gates)
         f = model.features(params, h)
 
@@ -475,9 +487,12 @@ def rollout(
         probs = jnp.where(is_stop, 0.0, jnp.exp(log_probs))
         heatmaps = jnp.where(hit[:, None], probs[None], state.heatmaps)
         heatmap_cls = jnp.where(hit, cls, state.heatmap_cls)
+        raster = draw_actor(state.raster, actor, False, cfg)
         return SamplerState(
             lstm=lstm,
-            raster=draw_actor(state.raster, actor, False, cfg),
+            raster=raster,
+            actor_gates=model.next_actor_gates(params, state.actor_gates, state.raster[None],
+                                               raster[None], actor.position[None]),
             actors=actors,
             count=count,
             prev_bin=jnp.where(placed, bin_index(actor.position, cfg), state.prev_bin),
@@ -492,6 +507,7 @@ def rollout(
     init = SamplerState(
         lstm=model.initial_state(params),
         raster=raster,
+        actor_gates=model.actor_gates(params, raster[None]),
         actors=jax.tree.map(jnp.asarray, empty_actors(n)),
         count=jnp.int32(0),
         prev_bin=jnp.int32(0),
@@ -515,7 +531,8 @@ def rollout(
 
 @functools.partial(
     jax.jit,
-    static_argnames=("cfg", "proposals", "candidates", "rounds", "heatmap_steps", "model"),
+    static_argnames=("cfg", "proposals", "candidates", "rounds", "heatmap_steps", "model",
+                     "parallel"),
 )
 def sample_batch(
     keys: jax.Array,
@@ -531,8 +548,14 @@ def sample_batch(
     rounds: int = DEFAULT_ROUNDS,
     heatmap_steps: tuple[int, ...] = (),
     model: Model | None = None,
+    parallel: int | None = None,
 ) -> Sample:
     """One compiled call for a batch: scene b is `rollout(keys[b], params, maps[b], ...)`.
+
+    The B x S scenes run `parallel` at a time under vmap (`lax.map` over groups); a vmapped
+    group runs until its longest scene is done. With parallel = 1 each scene runs on its own
+    (no vmap), which is fastest on CPU: there a vmapped group's activations leave the cache
+    and its convolutions slow down more than batching gains (bench/README.md).
 
     Args:
       keys: [B, S] keys; S samples per map share its map, ego, given actors and caps.
@@ -542,6 +565,7 @@ def sample_batch(
       given: Actors [B, N] (all invalid for none).
       caps: int32 [B, 3].
       cfg, proposals, candidates, rounds, heatmap_steps, model: as in `rollout` (static).
+      parallel: scenes vmapped together (static); default `default_parallel()`.
 
     Returns:
       Sample with leading axes [B, S].
@@ -552,8 +576,44 @@ def sample_batch(
                        candidates=candidates, rounds=rounds, heatmap_steps=heatmap_steps,
                        model=model)
 
-    per_map = jax.vmap(one, in_axes=(0, None, None, None, None))
-    return jax.vmap(per_map)(keys, maps, egos, given, caps)
+    b, s = keys.shape[:2]
+    parallel = default_parallel() if parallel is None else parallel
+    if parallel < 1:
+        raise ValueError(f"parallel must be >= 1, got {parallel}")
+    if parallel >= b * s:
+        per_map = jax.vmap(one, in_axes=(0, None, None, None, None))
+        return jax.vmap(per_map)(keys, maps, egos, given, caps)
+
+    impl = jax.random.key_impl(keys)
+
+    def flat(x):  # scene (b, s) -> index b * S + s
+        key, i = x
+        key = jax.random.wrap_key_data(key, impl=impl)
+        return one(key, maps[i], _take(egos, i), _take(given, i), caps[i])
+
+    # Groups of `parallel` scenes; the last group is padded with copies of the last scene.
+    n = b * s
+    groups = -(-n // parallel)
+    scene = jnp.minimum(jnp.arange(groups * parallel, dtype=jnp.int32), n - 1)
+    data = jax.random.key_data(keys)  # raw key data: typed keys do not pass through lax.map
+    data = data.reshape(n, *data.shape[2:])[scene]
+    if parallel == 1:
+        out, lead = lax.map(flat, (data, scene // s)), 1
+    else:
+        grouped = (data.reshape(groups, parallel, *data.shape[1:]),
+                   (scene // s).reshape(groups, parallel))
+        out, lead = lax.map(jax.vmap(flat), grouped), 2
+
+    def unflat(x):  # [groups (, parallel), ...] -> [B, S, ...]
+        rest = x.shape[lead:]
+        return x.reshape(groups * parallel, *rest)[:n].reshape(b, s, *rest)
+
+    return jax.tree.map(unflat, out)
+
+
+def default_parallel() -> int:
+    """Scenes `sample_batch` vmaps together by default: 1 on CPU, all on accelerators."""
+    return 1 if jax.default_backend() == "cpu" else 2**31 - 1
 
 
 def scene_keys(key: jax.Array, num_maps: int, num_per_map: int) -> jax.Array:
@@ -596,6 +656,7 @@ def sample_scenes(
     rounds: int = DEFAULT_ROUNDS,
     heatmap_steps: tuple[int, ...] = (),
     model: Model | None = None,
+    parallel: int | None = None,
 ) -> Sample:
     """Samples `num_per_map` scenes for each of B maps in one compiled call.
 
@@ -612,6 +673,7 @@ def sample_scenes(
       num_per_map: S, samples per map.
       caps: optional int32 [3] or [B, 3] per-class caps.
       proposals, candidates, rounds, heatmap_steps, model: see `rollout`.
+      parallel: scenes vmapped together, see `sample_batch`.
 
     Returns:
       Sample with leading axes [B, S].
@@ -620,4 +682,4 @@ def sample_scenes(
     given, caps = batch_inputs(cfg, b, given, caps)
     return sample_batch(scene_keys(key, b, num_per_map), params, maps, egos, given, caps,
                         cfg=cfg, proposals=proposals, candidates=candidates, rounds=rounds,
-                        heatmap_steps=heatmap_steps, model=model)
+                        heatmap_steps=heatmap_steps, model=model, parallel=parallel)

@@ -13,7 +13,7 @@ Inside a window (the fast path; measurements in bench/README.md):
   * the map share of layer 1's input convolution is computed once per scene (`map_gates`),
     so its weight gradient is one convolution over the gradients summed over steps;
   * per step: the actor share of layer 1's input gates, updated by a convolution over the
-    new actor's drawing window only (`next_actor_gates`), and the recurrence;
+    new actor's drawing window only (`SceneGenNet.next_actor_gates`), and the recurrence;
   * the backbone and the conv heads run on chunks of consecutive steps whose activations fit
     in cache (`head_chunk`; one step at the paper's width and grid): batching a whole window
     made XLA:CPU's convolutions 2-4x slower once the batch left the cache;
@@ -33,7 +33,7 @@ import jax.numpy as jnp
 from scenegen_jax.config import Config
 from scenegen_jax.distributions import TERMS, HeadOutputs, actor_log_likelihood
 from scenegen_jax.model.network import SceneGenNet, conv, lstm_gates
-from scenegen_jax.raster.actors import draw_actor, empty_actor_raster, window_origin, window_size
+from scenegen_jax.raster.actors import draw_actor, empty_actor_raster
 from scenegen_jax.scene import STOP, Actors, Scene, bin_index
 
 
@@ -97,38 +97,6 @@ def head_terms(net: SceneGenNet, params, heads, targets: Actors, is_stop, cfg: C
     return jax.vmap(ll)(head, targets, is_stop)
 
 
-def next_actor_gates(net: SceneGenNet, params, gates, before, after, position):
-    """Actor share of layer 1's input gates after one more actor is drawn, updated locally.
-
-    The convolution is linear and drawing an actor changes the raster only inside its
-    drawing window, so the new gates are the old ones plus the convolution of the change over
-    that window with a margin of the kernel's half-width: exact, at a fraction of a full-grid
-    convolution. Falls back to the full convolution when the window covers the grid.
-
-    Args:
-      gates: [B, H, W, 4h] actor gates of `before`.
-      before, after: [B, H, W, 9] actor rasters before and after the actor was drawn.
-      position: [B, 2] the drawn actor's position (m); invalid actors leave the raster as is.
-    """
-    cfg = net.cfg
-    margin = params["lstm1_act"].shape[0] // 2
-    p = window_size(cfg) + 2 * margin
-    if p >= cfg.grid_size:
-        return net.apply({"params": params}, after, method=SceneGenNet.actor_gates)
-    row0, col0 = window_origin(position, p, cfg)
-
-    def window(x, r, c):
-        return jax.lax.dynamic_slice(x, (r, c, 0), (p, p, x.shape[-1]))
-
-    change = jax.vmap(window)(after, row0, col0) - jax.vmap(window)(before, row0, col0)
-    delta = net.apply({"params": params}, change, method=SceneGenNet.actor_gates)
-
-    def add(g, d, r, c):
-        return jax.lax.dynamic_update_slice(g, window(g, r, c) + d, (r, c, 0))
-
-    return jax.vmap(add)(gates, delta, row0, col0)
-
-
 def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | None):
     """Log-likelihood terms of every step of a batch of scenes, teacher forced.
 
@@ -181,8 +149,9 @@ def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | 
             h2s = []
             for j in steps:
                 if j > 0:
-                    actor_gates = next_actor_gates(
-                        net, params, actor_gates, rasters[j - 1], rasters[j], win.position[:, j - 1]
+                    actor_gates = apply(
+                        SceneGenNet.next_actor_gates,
+                        actor_gates, rasters[j - 1], rasters[j], win.position[:, j - 1],
                     )
                 state, h2 = apply(SceneGenNet.recur, state, actor_gates + map_gates)
                 h2s.append(h2)
