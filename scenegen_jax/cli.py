@@ -88,6 +88,7 @@ def cmd_train(args) -> None:
         log_every=args.log_every,
         keep=args.keep,
         max_seconds=args.minutes * 60 if args.minutes else None,
+        init_from=args.init_from,
     )
     print(json.dumps({"workdir": args.workdir, "step": int(state.step)}))
 
@@ -409,6 +410,12 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--log-every", type=int, default=10)
     sp.add_argument("--keep", type=int, default=3, help="checkpoints kept")
     sp.add_argument("--minutes", type=float, help="wall-time budget; stops and saves after it")
+    sp.add_argument(
+        "--init-from",
+        metavar="WORKDIR",
+        help="a fresh run starts from this workdir's trained parameters (fresh optimizer); "
+        "a model without map layers can be extended with them",
+    )
     sp.add_argument(
         "--distributed",
         action="store_true",

@@ -27,6 +27,7 @@ from scenegen_jax.train.step import (
     crop_batch,
     init_state,
     loss_fn,
+    make_optimizer,
     make_train_step,
     train_step,
 )
@@ -185,6 +186,31 @@ def test_map_dropout_trains_as_on_a_blank_map(tiny_train_cache, small_scenes):
     assert abs(float(dropped["loss"]) - float(with_map["loss"])) > 1e-3
     with pytest.raises(ValueError, match="map_dropout"):
         CFG.replace(map_dropout=1.5)
+
+
+def test_warm_start_extends_a_model_without_map_layers(tiny_train_cache, small_scenes):
+    from scenegen_jax.train.loop import warm_start
+
+    no_map = CFG.replace(map_layers=())
+    source = init_state(no_map, seed=1)
+    params = warm_start(init_state(CFG).params, source.params, "src")
+    flat = dict(jax.tree_util.tree_flatten_with_path(params)[0])
+    for path, x in jax.tree_util.tree_flatten_with_path(source.params)[0]:
+        np.testing.assert_array_equal(flat.pop(path), x)
+    (path, x), = flat.items()  # the only parameter the source lacks: zero
+    assert "lstm1_map" in jax.tree_util.keystr(path) and not np.any(np.asarray(x))
+    # So the extended model starts as the source model: the same loss on real scenes.
+    batch = jax.device_put(_batch(tiny_train_cache, small_scenes))
+    state = init_state(CFG)._replace(params=params, opt_state=make_optimizer(CFG).init(params))
+    _, extended = train_step(state, batch, CFG)
+    _, original = train_step(source, batch, no_map)
+    np.testing.assert_allclose(extended["loss"], original["loss"], rtol=1e-6)
+
+    with pytest.raises(ValueError, match=r"src: parameter .* has shape"):
+        warm_start(init_state(CFG).params, init_state(CFG.replace(hidden=4)).params, "src")
+    del source.params["class_mlp0"]
+    with pytest.raises(ValueError, match="src: no parameter class_mlp0"):
+        warm_start(init_state(CFG).params, source.params, "src")
 
 
 def test_nan_batch_is_rejected_before_the_optimizer(tiny_train_cache, small_scenes):

@@ -10,6 +10,7 @@ import time
 
 import jax
 import numpy as np
+from flax.traverse_util import flatten_dict, unflatten_dict
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 from tqdm import tqdm
@@ -20,7 +21,14 @@ from scenegen_jax.distributions import TERMS
 from scenegen_jax.scene import CLASS_NAMES
 from scenegen_jax.train.checkpoint import Checkpointer
 from scenegen_jax.train.data import batch_indices, gather_batch, to_device
-from scenegen_jax.train.step import TrainState, check_batch, init_state, make_mesh, make_train_step
+from scenegen_jax.train.step import (
+    TrainState,
+    check_batch,
+    init_state,
+    make_mesh,
+    make_optimizer,
+    make_train_step,
+)
 
 log = logging.getLogger(__name__)
 CONFIG_FILE = "config.json"
@@ -74,9 +82,12 @@ def train(
     keep: int = 3,
     progress: bool = True,
     max_seconds: float | None = None,
+    init_from: str | None = None,
 ) -> TrainState:
     """Trains until `steps` total steps (or `max_seconds` of wall time), resuming from
-    `workdir`'s latest checkpoint; the last state is always saved."""
+    `workdir`'s latest checkpoint; the last state is always saved. A fresh run (no checkpoint
+    yet) with `init_from` starts from that workdir's trained parameters (`warm_start`), with a
+    fresh optimizer and step 0."""
     cache = load_cache(data_dir)
     cache.check_config(cfg)
     save_or_check_config(workdir, cfg)
@@ -88,6 +99,10 @@ def train(
     restored = ckpt.restore_latest(state)
     if restored is not None:
         state = restored
+    elif init_from is not None:
+        params = warm_start(state.params, load_trained(init_from)[1].params, init_from)
+        state = state._replace(params=params, opt_state=make_optimizer(cfg).init(params))
+        log.info("starting from the parameters of %s", init_from)
     state = jax.device_put(state, NamedSharding(mesh, P()))
     start = int(state.step)
     metrics_path = os.path.join(workdir, "metrics.jsonl")
@@ -123,6 +138,35 @@ def train(
     bar.close()
     ckpt.close()
     return state
+
+
+# Parameters a warm start may lack in its source: the map share of layer 1's input
+# convolution (a source trained without map layers). Zero, it leaves the source's model as is.
+ZERO_IF_MISSING = ("lstm1_map",)
+
+
+def warm_start(params, source, name: str):
+    """`params` with every parameter taken from `source` (same names and shapes), so training
+    starts from the source's model. The only parameter the source may lack is the map share
+    of layer 1's input convolution: it starts at zero (the map then changes nothing until
+    training moves it), so a model without map layers can be extended with them.
+
+    Raises:
+      ValueError naming `name` and the parameter on a shape mismatch or another missing one.
+    """
+    src = flatten_dict(source, sep="/")
+    out = {}
+    for path, x in flatten_dict(params, sep="/").items():
+        if path in src:
+            if src[path].shape != x.shape:
+                raise ValueError(f"{name}: parameter {path} has shape {src[path].shape}, the "
+                                 f"config needs {x.shape}")
+            out[path] = jax.numpy.asarray(src[path], x.dtype)
+        elif path.split("/")[0] in ZERO_IF_MISSING:
+            out[path] = jax.numpy.zeros_like(x)
+        else:
+            raise ValueError(f"{name}: no parameter {path} to start from")
+    return unflatten_dict(out, sep="/")
 
 
 def load_trained(workdir: str, step: int | None = None) -> tuple[Config, TrainState]:
