@@ -5,8 +5,9 @@
         bptt_window=25 batch_size=1                                     # the reference's shape
 
 Prints XLA's buffer plan of the compiled step (`memory_analysis`: the temporaries are most
-of the step's peak memory), the step time (after compilation) and the thunk kinds that take the most time
-(`ynn_fusion`: convolutions and dots through YNNPACK; `*_fusion`: XLA loop fusions). Run
+of the step's peak memory), the step time (after compilation) and the thunk kinds that take
+the most time (`ynn_fusion`: convolutions and dots through YNNPACK; `*_fusion`: XLA loop
+fusions). Run
 alone on a quiet machine. XLA_FLAGS=--xla_dump_to=DIR --xla_dump_hlo_as_text adds the HLO
 that names each thunk.
 """

@@ -22,8 +22,9 @@ Sampling. The reference times one generation step per scene (16 actors already p
 our rollout generates whole scenes, so we report ms per scene-step = wall time / the scene
 steps generated (each scene's actors, plus its stopping step). Scenes vmapped together run as
 many iterations as the longest of them (finished scenes idle: that cost is ours); on CPU
-`sample_batch` runs the scenes one by one (`parallel` = 1). Random weights would stop at once, so the stop logit is
-lowered by 10 (scenes then end when the ordering mask leaves no bin, or at max_actors).
+`sample_batch` runs the scenes one by one (`parallel` = 1; a B = 32 row with the whole batch
+vmapped is measured too). Random weights would stop at once, so the stop logit is lowered by
+10 (scenes then end when the ordering mask leaves no bin, or at max_actors).
 """
 
 from __future__ import annotations
@@ -231,7 +232,8 @@ def sample_case(cfg, params, args) -> dict:
     last = {}
 
     def fn():
-        s = sample_scenes(jax.random.key(next(counter)), params, cfg, maps, scenes.ego)
+        s = sample_scenes(jax.random.key(next(counter)), params, cfg, maps, scenes.ego,
+                          parallel=args.parallel)
         last["s"] = s
         return s.actors.valid
 
@@ -245,6 +247,7 @@ def sample_case(cfg, params, args) -> dict:
         actors_per_scene=float(count.mean()),
         loop_iterations=int(iterations.max()),
         scene_steps=int(iterations.sum()),
+        parallel=args.parallel,
         scenes_per_s=b / r["median_s"],
         per_scene_step_ms=1e3 * r["median_s"] / int(iterations.sum()),
         trained_model=bool(args.workdir),
@@ -344,7 +347,7 @@ def summarize(rows: list[dict]) -> dict:
         for fast in (False, True):
             p = find(False, "sample_step", grid, 8, fast)
             for b in (1, 32):
-                o = find(True, "sample", grid, b, config="paper")
+                o = find(True, "sample", grid, b, config="paper", parallel=None)
                 if o and p:
                     out[f"sample_grid{grid}_ours_B{b}_vs_ref_B8_{'bf16' if fast else 'fp32'}"] = {
                         "ours_ms_per_scene_step": o["per_scene_step_ms"],
@@ -371,6 +374,8 @@ def main_all(args) -> None:
         rows += ours("score", grid=128, steps=25, batch=8, runs=big)
         for b in (1, 32):
             rows += ours("sample", grid=128, batch=b, runs=r if b == 1 else big)
+        # The whole batch vmapped (the accelerator default), for comparison.
+        rows += ours("sample", grid=128, batch=32, runs=big, parallel=32)
         rows += ours("train", grid=320, steps=5, batch=1, runs=big)
         rows += ours("score", grid=320, steps=25, batch=1, runs=big)
         cpu = {"config": "cpu"}
@@ -427,6 +432,8 @@ def main() -> None:
     c.add_argument("--steps", type=int, default=25, help="T, generation steps (last = stop)")
     c.add_argument("--batch", type=int, default=1)
     c.add_argument("--runs", type=int, default=5)
+    c.add_argument("--parallel", type=int, help="sampling: scenes vmapped together "
+                   "(default: sample_batch's, 1 on CPU)")
     c.add_argument("--workdir")
     c.add_argument("--data")
     args = p.parse_args()

@@ -6,7 +6,8 @@ ConvLSTM state, the actor raster, the actors so far, the previous bin and a done
 transfer, no Python loop over steps. The loop exits as soon as the scene is done; under `vmap`
 it runs until every scene of the batch is done and finished scenes are left unchanged
 (`lax.while_loop`'s batching rule selects their old carry), so a batched call returns exactly
-the per-scene results. `sample_batch` / `sample_scenes` vmap it over scenes and keys.
+the per-scene results. `sample_batch` / `sample_scenes` map it over scenes and keys,
+`parallel` scenes vmapped at a time (on CPU one at a time, the fastest there).
 
 One step t (key `fold_in(key, t)`):
   1. Input gates = map gates (computed once per scene before the loop: the map is constant)
