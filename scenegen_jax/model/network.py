@@ -274,9 +274,10 @@ class SceneGenNet(nn.Module):
     def location_logits(self, f, cls, single: bool = False):
         """Logits over the H*W bins from the head of class `cls` [B] only: [B, H*W].
 
-        single=True (static; B must be 1 and the call not under vmap, as in the unrolled
-        training step at B = 1) runs plain convolutions with that class's kernels, XLA:CPU's
-        fastest; otherwise `conv_per_example`. Both give the same values.
+        single=True (static; B must be 1, as in the unrolled training step at B = 1 and in
+        the sampler's rollout) runs plain convolutions with that class's kernels, XLA:CPU's
+        fastest (under vmap they become a grouped convolution); otherwise
+        `conv_per_example`. All give the same values.
         """
         cls = jnp.clip(cls, 0, NUM_CLASSES - 1)
 

@@ -9,6 +9,7 @@ import sys
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from flax.traverse_util import flatten_dict, unflatten_dict
 from jax.sharding import NamedSharding
@@ -161,9 +162,9 @@ def warm_start(params, source, name: str):
             if src[path].shape != x.shape:
                 raise ValueError(f"{name}: parameter {path} has shape {src[path].shape}, the "
                                  f"config needs {x.shape}")
-            out[path] = jax.numpy.asarray(src[path], x.dtype)
+            out[path] = jnp.asarray(src[path], x.dtype)
         elif path.split("/")[0] in ZERO_IF_MISSING:
-            out[path] = jax.numpy.zeros_like(x)
+            out[path] = jnp.zeros_like(x)
         else:
             raise ValueError(f"{name}: no parameter {path} to start from")
     return unflatten_dict(out, sep="/")
