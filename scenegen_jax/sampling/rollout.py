@@ -120,9 +120,15 @@ class Model(Protocol):
 
 @dataclasses.dataclass(frozen=True)
 class NetworkModel:
-    """`Model` backed by `SceneGenNet` (hashable: usable as a static jit argument)."""
+    """`Model` backed by `SceneGenNet` (hashable: usable as a static jit argument).
+
+    single_example: the location head as plain convolutions with the class's kernels
+    (XLA:CPU's fastest for one scene; under vmap they become a grouped convolution, slow on
+    CPU) instead of `conv_per_example`; the same values either way.
+    """
 
     cfg: Config
+    single_example: bool = True
 
     def _apply(self, params, method, *args):
         return SceneGenNet(self.cfg).apply({"params": params}, *args, method=method)
@@ -149,9 +155,7 @@ class NetworkModel:
         return self._apply(params, SceneGenNet.class_logits, f)
 
     def location_logits(self, params, f, cls):
-        # One example: plain convolutions with the class's kernels (under vmap they become a
-        # grouped convolution, with the same values).
-        return self._apply(params, SceneGenNet.location_logits, f, cls, True)
+        return self._apply(params, SceneGenNet.location_logits, f, cls, self.single_example)
 
     def attributes(self, params, feat, cls):
         return self._apply(params, SceneGenNet.attributes, feat, cls)
@@ -581,6 +585,8 @@ def sample_batch(
     parallel = default_parallel() if parallel is None else parallel
     if parallel < 1:
         raise ValueError(f"parallel must be >= 1, got {parallel}")
+    if model is None:
+        model = NetworkModel(cfg, single_example=parallel == 1)
     if parallel >= b * s:
         per_map = jax.vmap(one, in_axes=(0, None, None, None, None))
         return jax.vmap(per_map)(keys, maps, egos, given, caps)
