@@ -28,7 +28,7 @@ from run import peak_rss_gib
 from synthetic import synthetic_batch
 
 from scenegen_jax.config import get_config
-from scenegen_jax.train.step import init_state, make_train_step
+from scenegen_jax.train.step import compile_train_step, init_state
 
 
 def thunk_times(trace_dir: str) -> collections.Counter:
@@ -52,7 +52,7 @@ def main() -> None:
     batch = jax.device_put(synthetic_batch(cfg, cfg.batch_size, cfg.max_actors))
     print(f"peak RSS before compiling {peak_rss_gib():.2f} GiB")
     t = time.perf_counter()
-    step = make_train_step(cfg).lower(state, batch).compile()
+    step = compile_train_step(cfg, state, batch)
     print(f"compile {time.perf_counter() - t:.2f} s, peak RSS {peak_rss_gib():.2f} GiB")
     mem = step.memory_analysis()
     print(f"XLA buffers: temporaries {mem.temp_size_in_bytes / 2**30:.2f} GiB, arguments "

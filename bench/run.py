@@ -7,16 +7,19 @@ reference (`../shared/bench/torch_ref`), on the same shapes, in one run; JSON ou
 
 Every case runs in its own subprocess, so its peak memory (ru_maxrss) is its own, and each
 prints one `RESULT {json}` line. Timings: a warm-up call first (its time, compilation
-included, is reported as `compile_and_first_s`), then `--runs` timed calls; each timed call
-waits for an idle machine and is kept only if other processes used < 5 % of the two cores
-meanwhile (like the reference's harness); median, min, max and all kept times are reported.
+included, is reported as `compile_and_first_s`; the train step is compiled ahead of time as
+the training loop does, `compile_s`, so there it is the first call alone), then `--runs`
+timed calls; each timed call waits for an idle machine and is kept only if other processes
+used < 5 % of the two cores meanwhile (like the reference's harness); median, min, max and
+all kept times are reported.
 
 Shapes. The reference model is fixed at the paper's width (hidden 32, GroupNorm 8, K = 10,
 10,000 hard negatives); we run our `paper` preset at the same grid, T and B, with our 11 map
 channels and the reference given `--map-ch 11`, so both do the same convolutions
 (`paper_flops`: the reference README's formula). Our `cpu` preset (hidden 16) has no
 reference twin; it is measured alone (train, score and sampling with the trained model on
-real validation maps, `--workdir`).
+real validation maps, `--workdir`). Train rows with `remat` recompute the backbone and heads
+in the backward pass (`Config.remat`): less memory for more compute.
 
 Sampling. The reference times one generation step per scene (16 actors already placed);
 our rollout generates whole scenes, so we report ms per scene-step = wall time / the scene
@@ -153,6 +156,7 @@ def case_config(args):
         bptt_window=args.steps,
         batch_size=args.batch,
         rotate_augment=False,
+        remat=args.remat,
     )
 
 
@@ -161,7 +165,7 @@ def run_case(args) -> dict:
     from synthetic import synthetic_batch
 
     from scenegen_jax.eval.nll import score_batch
-    from scenegen_jax.train.step import init_state, make_train_step
+    from scenegen_jax.train.step import compile_train_step, init_state
 
     cfg = case_config(args)
     c_in = len(cfg.map_channels) + ACTOR_CHANNELS
@@ -171,14 +175,16 @@ def run_case(args) -> dict:
     if args.kind == "train":
         cfg = cfg.replace(batch_size=args.batch)
         batch = jax.device_put(synthetic_batch(cfg, args.batch, args.steps - 1))
-        step = make_train_step(cfg)
+        t = time.perf_counter()
+        step = compile_train_step(cfg, state, batch)  # as the training loop does
+        out["compile_s"] = time.perf_counter() - t
         holder = {"state": state}
 
         def fn():
             holder["state"], stats = step(holder["state"], batch)
             return stats["loss"]
 
-        out.update(timed(fn, args.runs), steps=args.steps)
+        out.update(timed(fn, args.runs), steps=args.steps, remat=cfg.remat)
         flops = paper_flops(cfg.grid_size, args.steps, c_in, cfg.hidden)[1]
         out["GFLOP"] = flops * args.batch / 1e9
     elif args.kind == "score":
@@ -271,7 +277,8 @@ def _run(cmd: list[str], timeout: float = 1800) -> list[dict]:
 def ours(kind: str, **kw) -> list[dict]:
     cmd = [sys.executable, os.path.join(HERE, "run.py"), "case", kind]
     for k, v in kw.items():
-        cmd += [f"--{k.replace('_', '-')}", str(v)]
+        flag = f"--{k.replace('_', '-')}"
+        cmd += [flag] if v is True else [flag, str(v)]
     return _run(cmd)
 
 
@@ -322,11 +329,12 @@ def ceiling_ours(runs: int) -> dict:
 def summarize(rows: list[dict]) -> dict:
     """Ratios ours / reference (throughput; > 1 means we are faster) on matching shapes."""
 
-    def find(ours_, what, grid, batch, fast=False, **kw):
+    def find(ours_, what, grid, batch, fast=False, remat=False, **kw):
         for r in rows:
             if (r.get("ours") == ours_ and r.get("what") == what and r.get("grid") == grid
                     and r.get("batch") == batch and r.get("median_s")
                     and (ours_ or bool(r.get("bf16")) == fast)
+                    and bool(r.get("remat")) == remat
                     and all(r.get(k) == v for k, v in kw.items())):
                 return r
         return None
@@ -334,11 +342,12 @@ def summarize(rows: list[dict]) -> dict:
     out = {}
     for grid in (64, 128, 320):
         for what, ref_what in (("train", "train_step"), ("score", "score_fwd")):
-            for fast in (False, True):
-                o = find(True, what, grid, 1, config="paper")
+            for fast, remat in ((False, False), (True, False), (False, True)):
+                o = find(True, what, grid, 1, config="paper", remat=remat)
                 p = find(False, ref_what, grid, 1, fast)
                 if o and p and o.get("steps") == p.get("steps"):
                     key = f"{what}_grid{grid}_T{o['steps']}_B1_vs_{'bf16_cl' if fast else 'fp32'}"
+                    key = key.replace(f"{what}_", f"{what}_remat_", 1) if remat else key
                     out[key] = {
                         "ours_s": o["median_s"], "ref_s": p["median_s"],
                         "speedup": p["median_s"] / o["median_s"],
@@ -371,12 +380,14 @@ def main_all(args) -> None:
         for grid in (64, 128):
             rows += ours("train", grid=grid, steps=25, batch=1, runs=r)
             rows += ours("score", grid=grid, steps=25, batch=1, runs=r)
+        rows += ours("train", grid=128, steps=25, batch=1, runs=r, remat=True)
         rows += ours("score", grid=128, steps=25, batch=8, runs=big)
         for b in (1, 32):
             rows += ours("sample", grid=128, batch=b, runs=r if b == 1 else big)
         # The whole batch vmapped (the accelerator default), for comparison.
         rows += ours("sample", grid=128, batch=32, runs=big, parallel=32)
         rows += ours("train", grid=320, steps=5, batch=1, runs=big)
+        rows += ours("train", grid=320, steps=5, batch=1, runs=big, remat=True)
         rows += ours("score", grid=320, steps=25, batch=1, runs=big)
         cpu = {"config": "cpu"}
         rows += ours("train", steps=25, batch=4, runs=r, **cpu)
@@ -434,6 +445,8 @@ def main() -> None:
     c.add_argument("--runs", type=int, default=5)
     c.add_argument("--parallel", type=int, help="sampling: scenes vmapped together "
                    "(default: sample_batch's, 1 on CPU)")
+    c.add_argument("--remat", action="store_true",
+                   help="train: recompute the backbone and heads in the backward pass")
     c.add_argument("--workdir")
     c.add_argument("--data")
     args = p.parse_args()

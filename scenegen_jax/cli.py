@@ -379,6 +379,23 @@ def cmd_evaluate(args) -> None:
     print(format_table(report))
 
 
+def cmd_compare(args) -> None:
+    from scenegen_jax.eval.compare import compare_files
+
+    report = compare_files(args.a, args.b, args.term, args.block, args.samples, args.seed)
+    if args.out:
+        os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+        with open(args.out, "w") as f:
+            json.dump(report, f, indent=1)
+    print(f"{args.term} NLL per actor, A minus B (95% block-bootstrap interval)")
+    for name, r in report["rows"].items():
+        if r["actors"]:
+            print(f"  {name:<11} {r['diff']:+.3f} [{r['low']:+.3f}, {r['high']:+.3f}]"
+                  f"  ({r['actors']} actors)")
+        else:
+            print(f"  {name:<11} no actors")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="scenegen", description=__doc__)
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -469,6 +486,19 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--seed", type=int, default=0)
     sp.add_argument("--out", required=True, help="report JSON")
     sp.set_defaults(func=cmd_evaluate)
+    sp = sub.add_parser(
+        "compare", help="paired NLL difference of two models on the same scenes, with intervals"
+    )
+    sp.add_argument("--a", nargs="+", required=True,
+                    help="model A's `score --actors-out` files (one per seed)")
+    sp.add_argument("--b", nargs="+", required=True, help="model B's, paired with --a in order")
+    sp.add_argument("--term", default="location",
+                    help="class, location, box, heading, velocity or total")
+    sp.add_argument("--block", type=int, default=10, help="consecutive scenes per bootstrap block")
+    sp.add_argument("--samples", type=int, default=2000, help="bootstrap resamples")
+    sp.add_argument("--seed", type=int, default=0)
+    sp.add_argument("--out", help="optional report JSON")
+    sp.set_defaults(func=cmd_compare)
     return p
 
 

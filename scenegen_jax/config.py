@@ -57,6 +57,8 @@ class Config:
       map_dropout: probability that a training scene's map channels are all zeroed (beyond the
         paper): the model must then place actors from the actors alone, as a model without a
         map does, instead of only memorising where vehicles stand on the training maps.
+      remat: recompute the backbone and heads in the train step's backward pass instead of
+        storing their activations (same values and gradients; less memory, more compute).
       seed: base random seed.
     """
 
@@ -80,6 +82,7 @@ class Config:
     ego_size_m: tuple[float, float] = (1.95, 4.9)
     rotate_augment: bool = True
     map_dropout: float = 0.0
+    remat: bool = False
     seed: int = 0
 
     def __post_init__(self):

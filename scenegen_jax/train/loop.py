@@ -25,10 +25,10 @@ from scenegen_jax.train.data import batch_indices, gather_batch, to_device
 from scenegen_jax.train.step import (
     TrainState,
     check_batch,
+    compile_train_step,
     init_state,
     make_mesh,
     make_optimizer,
-    make_train_step,
 )
 
 log = logging.getLogger(__name__)
@@ -93,7 +93,7 @@ def train(
     cache.check_config(cfg)
     save_or_check_config(workdir, cfg)
     mesh = make_mesh()
-    step_fn = make_train_step(cfg, mesh)
+    step_fn = None  # compiled for the first batch's shapes (every batch has the same)
     data_sharding = NamedSharding(mesh, P("data"))
     ckpt = Checkpointer(os.path.join(workdir, "checkpoints"), save_every, keep)
     state = init_state(cfg)
@@ -116,7 +116,10 @@ def train(
         indices = batch_indices(len(cache), cfg.batch_size, cfg.seed, step)
         host = gather_batch(cache, indices, cfg)
         check_batch(host, [cache.scene_ids[i] for i in indices])
-        state, stats = step_fn(state, to_device(host, data_sharding))
+        batch = to_device(host, data_sharding)
+        if step_fn is None:
+            step_fn = compile_train_step(cfg, state, batch, mesh)
+        state, stats = step_fn(state, batch)
         stats = {**stats, "batches": 1}
         acc = stats if acc is None else jax.tree.map(lambda a, b: a + b, acc, stats)
         done = step + 1

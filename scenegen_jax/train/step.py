@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ctypes
 from typing import Any, NamedTuple
 
 import jax
@@ -136,6 +137,26 @@ def make_train_step(cfg: Config, mesh: Mesh | None = None):
         out_shardings=(replicated, replicated),
         donate_argnums=0,
     )
+
+
+def release_freed_memory() -> None:
+    """Hands freed heap pages back to the OS (glibc's `malloc_trim`; a no-op elsewhere).
+
+    Compiling the train step at grid 128 leaves about 0.6 GiB of the compiler's freed memory
+    resident; returned before the first step, it no longer adds to the step's peak.
+    """
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
+def compile_train_step(cfg: Config, state: TrainState, batch: Batch, mesh: Mesh | None = None):
+    """`make_train_step` compiled ahead of time for the shapes of (state, batch), with the
+    compiler's freed memory returned to the OS before the first step runs."""
+    step = make_train_step(cfg, mesh).lower(state, batch).compile()
+    release_freed_memory()
+    return step
 
 
 def check_batch(batch: Batch, scene_ids: list[str]) -> None:

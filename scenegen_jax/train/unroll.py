@@ -18,7 +18,10 @@ Inside a window (the fast path; measurements in bench/README.md):
     in cache (`head_chunk`; one step at the paper's width and grid): batching a whole window
     made XLA:CPU's convolutions 2-4x slower once the batch left the cache;
   * the location head runs only for the class scored at each step;
-  * the densities (small) run once, batched over all steps of the window.
+  * the densities (small) run once, batched over all steps of the window;
+  * with `cfg.remat`, a chunk's backbone and heads are recomputed in the backward pass
+    instead of stored (`recompute_in_backward`): the step's temporaries drop from 2.1 to
+    0.85 GiB at grid 128, T 25 (bench/README.md).
 `reference_step_terms` is the plain per-step version used to test it.
 """
 
@@ -65,6 +68,37 @@ def head_chunk(cfg: Config, batch: int) -> int:
     """Steps whose backbone and heads run as one batch (1 at the paper's grid)."""
     per_step = batch * cfg.grid_size * cfg.grid_size * cfg.hidden * 4
     return max(1, min(cfg.bptt_window, HEAD_CHUNK_BYTES // per_step))
+
+
+def recompute_in_backward(fn):
+    """fn(params, x, *static) with its activations recomputed in the backward pass.
+
+    Returns g(params, x, *static, state) -> (fn(params, x, *static), state): `state` (the
+    ConvLSTM state after the chunk) passes through unchanged, so its cotangent, which only
+    exists once the later chunks' backward has run, can order the recomputation: the
+    backward recomputes fn from x plus a zero taken from that cotangent. Without that data
+    dependency (plain `jax.checkpoint`), XLA:CPU schedules every chunk's recomputation at
+    once and keeps them all alive, which saves nothing. Same values and gradients as fn;
+    `static` are integer arrays (no gradient).
+    """
+
+    @jax.custom_vjp
+    def g(params, x, *rest):
+        *static, state = rest
+        return fn(params, x, *static), state
+
+    def forward(params, x, *rest):
+        return g(params, x, *rest), (params, x, rest[:-1])
+
+    def backward(res, cotangent):
+        params, x, static = res
+        ct_out, ct_state = cotangent
+        zero = 0.0 * jax.tree.leaves(ct_state)[0].ravel()[0]  # 0 * a number is not folded
+        _, vjp = jax.vjp(lambda p, y: fn(p, y, *static), params, x + zero)
+        return (*vjp(ct_out), *(None for _ in static), ct_state)
+
+    g.defvjp(forward, backward)
+    return g
 
 
 def step_heads(net: SceneGenNet, params, f, cls, bins):
@@ -129,6 +163,10 @@ def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | 
     )
     state0 = net.apply({"params": params}, b, method=SceneGenNet.initial_state)
 
+    def chunk_heads(params, h2, cls, bins):
+        f = net.apply({"params": params}, h2, method=SceneGenNet.features)
+        return step_heads(net, params, f, cls, bins)
+
     def run(state, raster, start):
         win = jax.tree.map(lambda x: jax.lax.dynamic_slice_in_dim(x, start, w, axis=1), actors)
 
@@ -155,10 +193,14 @@ def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | 
                     )
                 state, h2 = apply(SceneGenNet.recur, state, actor_gates + map_gates)
                 h2s.append(h2)
-            f = apply(SceneGenNet.features, jnp.concatenate(h2s))  # [n * B, ...] step-major
             cls = jnp.swapaxes(targets.cls[:, c0 : c0 + chunk], 0, 1).reshape(-1)
             at = jnp.swapaxes(bins[:, c0 : c0 + chunk], 0, 1).reshape(-1)
-            heads.append(step_heads(net, params, f, cls, at))
+            h2s = jnp.concatenate(h2s)  # [n * B, ...] step-major
+            if cfg.remat:
+                out, state = recompute_in_backward(chunk_heads)(params, h2s, cls, at, state)
+            else:
+                out = chunk_heads(params, h2s, cls, at)
+            heads.append(out)
         # The densities are cheap and small: one batched call over the window's steps.
         heads = jax.tree.map(lambda *x: jnp.concatenate(x), *heads)  # [W * B, ...] step-major
         flat = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1).reshape(w * b, *x.shape[2:]), targets)

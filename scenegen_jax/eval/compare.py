@@ -1,0 +1,115 @@
+"""Paired comparison of two models scored on the same scenes, with block-bootstrap intervals.
+
+Input: the per-step terms that `scenegen score --actors-out F.npz` writes. The statistic is
+the difference in NLL per actor (model A minus model B) of one term, over the actors of one
+class or of all classes: sum over scenes of (A's NLL - B's NLL) / number of actors. Several
+A/B pairs (seeds) are averaged scene by scene before the ratio. The interval resamples blocks
+of consecutive scenes (frames of one log are correlated) with replacement.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from scenegen_jax.distributions import TERMS
+from scenegen_jax.scene import CLASS_NAMES
+
+FIELDS = (*TERMS, "step_valid", "step_cls")
+
+
+def load_scores(path: str) -> dict[str, np.ndarray]:
+    """The arrays of a `--actors-out` file (never unpickles); errors name the missing field."""
+    with np.load(path, allow_pickle=False) as f:
+        missing = [k for k in FIELDS if k not in f.files]
+        if missing:
+            raise ValueError(f"{path}: missing field {missing[0]!r} (not a --actors-out file?)")
+        return {k: f[k] for k in FIELDS}
+
+
+def actor_sums(scores: dict, term: str, cls: int | None) -> tuple[np.ndarray, np.ndarray]:
+    """Per scene: (sum of `term` NLL over its actors of class `cls`, their count) [S] each;
+    cls None takes every class (not the stop token). term "total" sums all terms."""
+    if term != "total" and term not in TERMS:
+        raise ValueError(f"term {term!r}: expected 'total' or one of {TERMS}")
+    values = sum(scores[k] for k in TERMS) if term == "total" else scores[term]
+    actor = scores["step_valid"] & (scores["step_cls"] < len(CLASS_NAMES))
+    if cls is not None:
+        actor = actor & (scores["step_cls"] == cls)
+    return np.where(actor, values, 0.0).sum(1), actor.sum(1)
+
+
+def _check_same_scenes(runs: list[dict], names: list[str]) -> None:
+    for run, name in zip(runs[1:], names[1:], strict=True):
+        for k in ("step_valid", "step_cls"):
+            if run[k].shape != runs[0][k].shape or not np.array_equal(run[k], runs[0][k]):
+                raise ValueError(
+                    f"{name}: field {k!r} differs from {names[0]}'s: not the same scenes"
+                )
+
+
+def paired_difference(
+    a: list[dict],
+    b: list[dict],
+    term: str = "location",
+    cls: int | None = None,
+    block: int = 10,
+    samples: int = 2000,
+    seed: int = 0,
+) -> dict:
+    """NLL per actor of A minus B, pairs averaged scene by scene, with a 95% interval.
+
+    Returns dict(diff, low, high, actors): the point estimate, the 2.5% and 97.5% percentiles
+    of `samples` block-bootstrap resamples (blocks of `block` consecutive scenes), and the
+    number of actors counted.
+    """
+    if len(a) != len(b) or not a:
+        raise ValueError(f"need as many A runs as B runs, at least one (got {len(a)}, {len(b)})")
+    d = np.mean(
+        [
+            actor_sums(x, term, cls)[0] - actor_sums(y, term, cls)[0]
+            for x, y in zip(a, b, strict=True)
+        ],
+        axis=0,
+    )
+    n = actor_sums(a[0], term, cls)[1]
+    if n.sum() == 0:
+        return {"diff": None, "low": None, "high": None, "actors": 0}
+    starts = np.arange(0, len(d), block)
+    d_blocks = np.add.reduceat(d, starts)
+    n_blocks = np.add.reduceat(n, starts)
+    pick = np.random.default_rng(seed).integers(0, len(starts), (samples, len(starts)))
+    stats = d_blocks[pick].sum(1) / np.maximum(n_blocks[pick].sum(1), 1)
+    low, high = np.percentile(stats, [2.5, 97.5])
+    return {
+        "diff": float(d.sum() / n.sum()),
+        "low": float(low),
+        "high": float(high),
+        "actors": int(n.sum()),
+    }
+
+
+def compare_files(
+    a_paths: list[str],
+    b_paths: list[str],
+    term: str = "location",
+    block: int = 10,
+    samples: int = 2000,
+    seed: int = 0,
+) -> dict:
+    """`paired_difference` per class and over all actors for `--actors-out` files."""
+    a = [load_scores(p) for p in a_paths]
+    b = [load_scores(p) for p in b_paths]
+    _check_same_scenes(a + b, list(a_paths) + list(b_paths))
+    rows = {
+        name: paired_difference(a, b, term, c, block, samples, seed)
+        for c, name in enumerate(CLASS_NAMES)
+    }
+    rows["all actors"] = paired_difference(a, b, term, None, block, samples, seed)
+    return {
+        "a": list(a_paths),
+        "b": list(b_paths),
+        "term": term,
+        "block": block,
+        "samples": samples,
+        "rows": rows,
+    }
