@@ -18,8 +18,9 @@ Shapes. The reference model is fixed at the paper's width (hidden 32, GroupNorm 
 channels and the reference given `--map-ch 11`, so both do the same convolutions
 (`paper_flops`: the reference README's formula). Our `cpu` preset (hidden 16) has no
 reference twin; it is measured alone (train, score and sampling with the trained model on
-real validation maps, `--workdir`). Train rows with `remat` recompute the backbone and heads
-in the backward pass (`Config.remat`): less memory for more compute.
+real validation maps, `--workdir`). The `paper` preset recomputes the backbone and heads in
+the train step's backward pass (`Config.remat`: less memory for more compute); train rows
+with `"remat": false` are the same step storing them.
 
 Sampling. The reference times one generation step per scene (16 actors already placed);
 our rollout generates whole scenes, so we report ms per scene-step = wall time / the scene
@@ -156,7 +157,7 @@ def case_config(args):
         bptt_window=args.steps,
         batch_size=args.batch,
         rotate_augment=False,
-        remat=args.remat,
+        **({} if args.remat is None else {"remat": args.remat == "on"}),
     )
 
 
@@ -277,8 +278,7 @@ def _run(cmd: list[str], timeout: float = 1800) -> list[dict]:
 def ours(kind: str, **kw) -> list[dict]:
     cmd = [sys.executable, os.path.join(HERE, "run.py"), "case", kind]
     for k, v in kw.items():
-        flag = f"--{k.replace('_', '-')}"
-        cmd += [flag] if v is True else [flag, str(v)]
+        cmd += [f"--{k.replace('_', '-')}", str(v)]
     return _run(cmd)
 
 
@@ -342,12 +342,13 @@ def summarize(rows: list[dict]) -> dict:
     out = {}
     for grid in (64, 128, 320):
         for what, ref_what in (("train", "train_step"), ("score", "score_fwd")):
-            for fast, remat in ((False, False), (True, False), (False, True)):
-                o = find(True, what, grid, 1, config="paper", remat=remat)
+            # The paper preset recomputes in the backward (remat); train rows without it too.
+            for fast, remat in ((False, True), (True, True), (False, False)):
+                o = find(True, what, grid, 1, config="paper", remat=remat and what == "train")
                 p = find(False, ref_what, grid, 1, fast)
-                if o and p and o.get("steps") == p.get("steps"):
+                if o and p and o.get("steps") == p.get("steps") and (remat or what == "train"):
                     key = f"{what}_grid{grid}_T{o['steps']}_B1_vs_{'bf16_cl' if fast else 'fp32'}"
-                    key = key.replace(f"{what}_", f"{what}_remat_", 1) if remat else key
+                    key = key.replace(f"{what}_", f"{what}_noremat_", 1) if not remat else key
                     out[key] = {
                         "ours_s": o["median_s"], "ref_s": p["median_s"],
                         "speedup": p["median_s"] / o["median_s"],
@@ -380,14 +381,14 @@ def main_all(args) -> None:
         for grid in (64, 128):
             rows += ours("train", grid=grid, steps=25, batch=1, runs=r)
             rows += ours("score", grid=grid, steps=25, batch=1, runs=r)
-        rows += ours("train", grid=128, steps=25, batch=1, runs=r, remat=True)
+        rows += ours("train", grid=128, steps=25, batch=1, runs=r, remat="off")
         rows += ours("score", grid=128, steps=25, batch=8, runs=big)
         for b in (1, 32):
             rows += ours("sample", grid=128, batch=b, runs=r if b == 1 else big)
         # The whole batch vmapped (the accelerator default), for comparison.
         rows += ours("sample", grid=128, batch=32, runs=big, parallel=32)
         rows += ours("train", grid=320, steps=5, batch=1, runs=big)
-        rows += ours("train", grid=320, steps=5, batch=1, runs=big, remat=True)
+        rows += ours("train", grid=320, steps=5, batch=1, runs=big, remat="off")
         rows += ours("score", grid=320, steps=25, batch=1, runs=big)
         cpu = {"config": "cpu"}
         rows += ours("train", steps=25, batch=4, runs=r, **cpu)
@@ -445,8 +446,9 @@ def main() -> None:
     c.add_argument("--runs", type=int, default=5)
     c.add_argument("--parallel", type=int, help="sampling: scenes vmapped together "
                    "(default: sample_batch's, 1 on CPU)")
-    c.add_argument("--remat", action="store_true",
-                   help="train: recompute the backbone and heads in the backward pass")
+    c.add_argument("--remat", choices=("on", "off"),
+                   help="train: recompute the backbone and heads in the backward pass (default: "
+                   "the preset's, on for paper)")
     c.add_argument("--workdir")
     c.add_argument("--data")
     args = p.parse_args()

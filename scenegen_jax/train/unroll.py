@@ -20,8 +20,9 @@ Inside a window (the fast path; measurements in bench/README.md):
   * the location head runs only for the class scored at each step;
   * the densities (small) run once, batched over all steps of the window;
   * with `cfg.remat`, a chunk's backbone and heads are recomputed in the backward pass
-    instead of stored (`recompute_in_backward`): the step's temporaries drop from 2.1 to
-    0.85 GiB at grid 128, T 25 (bench/README.md).
+    instead of stored (`recompute_in_backward`), each one chunk late so that the recomputation
+    overlaps the next chunk's recurrence: at the paper's width, grid 128, T 25, the step's
+    temporaries drop from 2.1 to 0.9 GiB for 1-6 % more time on 2 CPU cores (bench/README.md).
 `reference_step_terms` is the plain per-step version used to test it.
 """
 
@@ -73,9 +74,9 @@ def head_chunk(cfg: Config, batch: int) -> int:
 def recompute_in_backward(fn):
     """fn(params, x, *static) with its activations recomputed in the backward pass.
 
-    Returns g(params, x, *static, state) -> (fn(params, x, *static), state): `state` (the
-    ConvLSTM state after the chunk) passes through unchanged, so its cotangent, which only
-    exists once the later chunks' backward has run, can order the recomputation: the
+    Returns g(params, x, *static, state) -> (fn(params, x, *static), state): `state` (a
+    later ConvLSTM state) passes through unchanged, so its cotangent, which only exists
+    once the later chunks' backward has run, can order the recomputation: the
     backward recomputes fn from x plus a zero taken from that cotangent. Without that data
     dependency (plain `jax.checkpoint`), XLA:CPU schedules every chunk's recomputation at
     once and keeps them all alive, which saves nothing. Same values and gradients as fn;
@@ -180,7 +181,7 @@ def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | 
         targets, is_stop, valid = _step_targets(win, n_actors, t)
         bins = bin_index(targets.position, cfg)  # [B, W]
         chunk = head_chunk(cfg, b)
-        heads = []
+        heads, pending = [], []
         actor_gates = apply(SceneGenNet.actor_gates, rasters[0])
         for c0 in range(0, w, chunk):
             steps = range(c0, min(c0 + chunk, w))
@@ -195,11 +196,18 @@ def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | 
                 h2s.append(h2)
             cls = jnp.swapaxes(targets.cls[:, c0 : c0 + chunk], 0, 1).reshape(-1)
             at = jnp.swapaxes(bins[:, c0 : c0 + chunk], 0, 1).reshape(-1)
-            h2s = jnp.concatenate(h2s)  # [n * B, ...] step-major
-            if cfg.remat:
-                out, state = recompute_in_backward(chunk_heads)(params, h2s, cls, at, state)
-            else:
-                out = chunk_heads(params, h2s, cls, at)
+            args = (jnp.concatenate(h2s), cls, at)  # [n * B, ...] step-major
+            if not cfg.remat:
+                heads.append(chunk_heads(params, *args))
+                continue
+            # One chunk late: the state passed through is the one after the next chunk, so
+            # the backward recomputes this chunk while the next one's recurrence runs.
+            pending.append(args)
+            if len(pending) == 2:
+                out, state = recompute_in_backward(chunk_heads)(params, *pending.pop(0), state)
+                heads.append(out)
+        for args in pending:
+            out, state = recompute_in_backward(chunk_heads)(params, *args, state)
             heads.append(out)
         # The densities are cheap and small: one batched call over the window's steps.
         heads = jax.tree.map(lambda *x: jnp.concatenate(x), *heads)  # [W * B, ...] step-major
