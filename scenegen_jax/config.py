@@ -144,7 +144,7 @@ PRESETS: dict[str, Config] = {
         batch_size=16,
         learning_rate=1e-4,
         grad_clip=0.0,
-        remat=True,  # accelerator memory; on CPU it costs 1-6 % of a train step (bench/README.md)
+        remat=True,  # accelerator memory; on CPU it costs 1-7 % of a train step (bench/README.md)
     ),
     # Trains on 2 CPU cores: 1.25 m/px over the same 80 m region, half the paper's width.
     "cpu": Config(

@@ -22,7 +22,7 @@ Inside a window (the fast path; measurements in bench/README.md):
   * with `cfg.remat`, a chunk's backbone and heads are recomputed in the backward pass
     instead of stored (`recompute_in_backward`), each one chunk late so that the recomputation
     overlaps the next chunk's recurrence: at the paper's width, grid 128, T 25, the step's
-    temporaries drop from 2.1 to 0.9 GiB for 1-6 % more time on 2 CPU cores (bench/README.md).
+    temporaries drop from 2.1 to 0.9 GiB for 1-7 % more time on 2 CPU cores (bench/README.md).
 `reference_step_terms` is the plain per-step version used to test it.
 """
 
@@ -94,7 +94,8 @@ def recompute_in_backward(fn):
     def backward(res, cotangent):
         params, x, static = res
         ct_out, ct_state = cotangent
-        zero = 0.0 * jax.tree.leaves(ct_state)[0].ravel()[0]  # 0 * a number is not folded
+        # XLA does not fold 0 * x for floats (x may be NaN), so the dependency stays.
+        zero = 0.0 * jax.tree.leaves(ct_state)[0].ravel()[0]
         _, vjp = jax.vjp(lambda p, y: fn(p, y, *static), params, x + zero)
         return (*vjp(ct_out), *(None for _ in static), ct_state)
 
