@@ -100,8 +100,7 @@ def cmd_score(args) -> None:
 
     from scenegen_jax.data.cache import load_cache
     from scenegen_jax.distributions import TERMS
-    from scenegen_jax.eval.nll import score_cache, summarize_scores
-    from scenegen_jax.scene import CLASS_NAMES
+    from scenegen_jax.eval.nll import actor_steps, score_cache, summarize_scores
     from scenegen_jax.train.loop import load_trained
 
     if args.top_k < 0 or (args.top_k and not args.render):
@@ -111,7 +110,7 @@ def cmd_score(args) -> None:
     cache.check_config(cfg)
     scores = score_cache(state.params, cache, cfg, batch_size=args.batch_size)
     total = sum(scores[k] for k in TERMS)
-    actor = scores["step_valid"] & (scores["step_cls"] < len(CLASS_NAMES))
+    actor = actor_steps(scores)
     n_actors = actor.sum(1)
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w", newline="") as f:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from scenegen_jax.distributions import TERMS
+from scenegen_jax.eval.nll import actor_steps
 from scenegen_jax.scene import CLASS_NAMES
 
 FIELDS = (*TERMS, "step_valid", "step_cls")
@@ -32,7 +33,7 @@ def actor_sums(scores: dict, term: str, cls: int | None) -> tuple[np.ndarray, np
     if term != "total" and term not in TERMS:
         raise ValueError(f"term {term!r}: expected 'total' or one of {TERMS}")
     values = sum(scores[k] for k in TERMS) if term == "total" else scores[term]
-    actor = scores["step_valid"] & (scores["step_cls"] < len(CLASS_NAMES))
+    actor = actor_steps(scores)
     if cls is not None:
         actor = actor & (scores["step_cls"] == cls)
     return np.where(actor, values, 0.0).sum(1), actor.sum(1)

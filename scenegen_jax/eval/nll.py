@@ -66,6 +66,11 @@ def score_cache(params, cache: Cache, cfg: Config, batch_size: int = 8, progress
     return {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
 
 
+def actor_steps(scores: dict) -> np.ndarray:
+    """[S, T] mask of the steps that place an actor (valid, not the stop token)."""
+    return scores["step_valid"] & (scores["step_cls"] < len(CLASS_NAMES))
+
+
 def summarize_scores(scores: dict) -> dict:
     """Mean scene NLL and mean per-actor NLL by class and by term (paper Table 2 columns)."""
     total = sum(scores[k] for k in TERMS)
@@ -78,7 +83,7 @@ def summarize_scores(scores: dict) -> dict:
         out[f"nll_per_{name}"] = float(total[m].sum() / count) if count else None
         for k in TERMS:
             out[f"{k}_nll_per_{name}"] = float(scores[k][m].sum() / count) if count else None
-    actor = valid & (cls < len(CLASS_NAMES))
+    actor = actor_steps(scores)
     out["nll_per_actor"] = float(total[actor].sum() / max(actor.sum(), 1))
     return out
 
@@ -91,7 +96,7 @@ def worst_scenes(scores: dict, k: int) -> list[tuple[int, int, float, dict]]:
     without actors are skipped.
     """
     total = sum(scores[k_] for k_ in TERMS)
-    actor = scores["step_valid"] & (scores["step_cls"] < len(CLASS_NAMES))
+    actor = actor_steps(scores)
     counts = actor.sum(1)
     per_actor = np.where(counts > 0, (total * scores["step_valid"]).sum(1) / np.maximum(counts, 1),
                          -np.inf)

@@ -169,6 +169,8 @@ def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | 
         f = net.apply({"params": params}, h2, method=SceneGenNet.features)
         return step_heads(net, params, f, cls, bins)
 
+    remat_heads = recompute_in_backward(chunk_heads)
+
     def run(state, raster, start):
         win = jax.tree.map(lambda x: jax.lax.dynamic_slice_in_dim(x, start, w, axis=1), actors)
 
@@ -205,10 +207,10 @@ def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | 
             # the backward recomputes this chunk while the next one's recurrence runs.
             pending.append(args)
             if len(pending) == 2:
-                out, state = recompute_in_backward(chunk_heads)(params, *pending.pop(0), state)
+                out, state = remat_heads(params, *pending.pop(0), state)
                 heads.append(out)
         for args in pending:
-            out, state = recompute_in_backward(chunk_heads)(params, *args, state)
+            out, state = remat_heads(params, *args, state)
             heads.append(out)
         # The densities are cheap and small: one batched call over the window's steps.
         heads = jax.tree.map(lambda *x: jnp.concatenate(x), *heads)  # [W * B, ...] step-major
