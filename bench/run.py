@@ -203,6 +203,22 @@ def run_case(args) -> dict:
     if args.kind != "sample":
         out["GFLOPs_per_s"] = out["GFLOP"] / out["median_s"]
     out["peak_rss_GiB"] = round(peak_rss_gib(), 2)
+    out.update(device_fields())
+    return out
+
+
+def device_fields() -> dict:
+    """The backend, and on an accelerator its kind and peak memory (the allocator's high-water
+    mark, the figure to set beside `torch.cuda.max_memory_allocated`)."""
+    import jax
+
+    d = jax.devices()[0]
+    out = {"backend": jax.default_backend()}
+    if out["backend"] != "cpu":
+        stats = d.memory_stats() or {}
+        out["device"] = d.device_kind
+        if "peak_bytes_in_use" in stats:
+            out["peak_device_GiB"] = round(stats["peak_bytes_in_use"] / 2**30, 3)
     return out
 
 
@@ -272,6 +288,8 @@ def _run(cmd: list[str], timeout: float = 1800) -> list[dict]:
         return [{"what": "error", "cmd": cmd, "returncode": p.returncode, "stderr_tail": tail}]
     for r in rows:
         r["cmd"] = " ".join(os.path.relpath(c, REPO) if c.startswith(REPO) else c for c in cmd)
+        print(json.dumps({k: v for k, v in r.items() if k not in ("all_s", "cmd")}),
+              file=sys.stderr, flush=True)
     return rows
 
 
@@ -294,8 +312,8 @@ def torch_env() -> str | None:
     return TORCH_PY
 
 
-def peer(py: str, sub: str, *extra: str) -> list[dict]:
-    rows = _run([py, os.path.join(TORCH_REF, "bench.py"), sub, *extra])
+def peer(py: str, sub: str, *extra: str, script: str = os.path.join(TORCH_REF, "bench.py")):
+    rows = _run([py, script, sub, *extra])
     for r in rows:
         r["ours"] = False
     return rows
@@ -326,98 +344,136 @@ def ceiling_ours(runs: int) -> dict:
     return out
 
 
+REF_WHAT = {"train": "train_step", "score": "score_fwd"}  # the reference's names
+
+
 def summarize(rows: list[dict]) -> dict:
-    """Ratios ours / reference (throughput; > 1 means we are faster) on matching shapes."""
+    """Ratios ours / reference (throughput; > 1 means we are faster) on matching shapes: each
+    `paper`-preset row of ours against the reference's float32 and fast-mode rows of the same
+    grid, T and B; sampling per generated scene-step against the reference's B = 8 and its
+    row of our own B, if any."""
 
-    def find(ours_, what, grid, batch, fast=False, remat=False, **kw):
-        for r in rows:
-            if (r.get("ours") == ours_ and r.get("what") == what and r.get("grid") == grid
-                    and r.get("batch") == batch and r.get("median_s")
-                    and (ours_ or bool(r.get("bf16")) == fast)
-                    and bool(r.get("remat")) == remat
-                    and all(r.get(k) == v for k, v in kw.items())):
-                return r
-        return None
+    def peak(r):
+        return r.get("peak_device_GiB", r.get("peak_rss_GiB"))
 
+    refs = [r for r in rows if r.get("ours") is False and r.get("median_s")]
     out = {}
-    for grid in (64, 128, 320):
-        for what, ref_what in (("train", "train_step"), ("score", "score_fwd")):
-            # The paper preset recomputes in the backward (remat); train rows without it too.
-            for fast, remat in ((False, True), (True, True), (False, False)):
-                o = find(True, what, grid, 1, config="paper", remat=remat and what == "train")
-                p = find(False, ref_what, grid, 1, fast)
-                if o and p and o.get("steps") == p.get("steps") and (remat or what == "train"):
-                    key = f"{what}_grid{grid}_T{o['steps']}_B1_vs_{'bf16_cl' if fast else 'fp32'}"
-                    key = key.replace(f"{what}_", f"{what}_noremat_", 1) if not remat else key
-                    out[key] = {
-                        "ours_s": o["median_s"], "ref_s": p["median_s"],
-                        "speedup": p["median_s"] / o["median_s"],
-                        "ours_peak_GiB": o["peak_rss_GiB"], "ref_peak_GiB": p["peak_rss_GiB"],
-                    }
-        for fast in (False, True):
-            p = find(False, "sample_step", grid, 8, fast)
-            for b in (1, 32):
-                o = find(True, "sample", grid, b, config="paper", parallel=None)
-                if o and p:
-                    out[f"sample_grid{grid}_ours_B{b}_vs_ref_B8_{'bf16' if fast else 'fp32'}"] = {
-                        "ours_ms_per_scene_step": o["per_scene_step_ms"],
-                        "ref_ms_per_scene_step": p["per_scene_ms"],
-                        "speedup": p["per_scene_ms"] / o["per_scene_step_ms"]}
+    for o in rows:
+        if not (o.get("ours") and o.get("config") == "paper" and o.get("median_s")):
+            continue
+        g, b = o["grid"], o["batch"]
+        for p in refs:
+            mode = "bf16_cl" if p.get("bf16") else "fp32"
+            if p.get("grid") != g:
+                continue
+            if (p["what"] == REF_WHAT.get(o["what"])
+                    and (p["steps"], p["batch"]) == (o["steps"], b)):
+                what = "train_noremat" if o["what"] == "train" and not o.get("remat") else o["what"]
+                out[f"{what}_grid{g}_T{o['steps']}_B{b}_vs_{mode}"] = {
+                    "ours_s": o["median_s"], "ref_s": p["median_s"],
+                    "speedup": p["median_s"] / o["median_s"],
+                    "ours_peak_GiB": peak(o), "ref_peak_GiB": peak(p)}
+            elif (o["what"] == "sample" and p["what"] == "sample_step" and o.get("parallel") is None
+                    and p["batch"] in (8, b)):
+                mode = mode.replace("_cl", "")
+                out[f"sample_grid{g}_ours_B{b}_vs_ref_B{p['batch']}_{mode}"] = {
+                    "ours_ms_per_scene_step": o["per_scene_step_ms"],
+                    "ref_ms_per_scene_step": p["per_scene_ms"],
+                    "speedup": p["per_scene_ms"] / o["per_scene_step_ms"]}
     return out
 
 
+def cpu_ours(args) -> list[dict]:
+    r, big, rows = args.runs, max(2, args.runs // 2), []
+    for grid in (64, 128):
+        rows += ours("train", grid=grid, steps=25, batch=1, runs=r)
+        rows += ours("score", grid=grid, steps=25, batch=1, runs=r)
+    rows += ours("train", grid=128, steps=25, batch=1, runs=r, remat="off")
+    rows += ours("score", grid=128, steps=25, batch=8, runs=big)
+    for b in (1, 32):
+        rows += ours("sample", grid=128, batch=b, runs=r if b == 1 else big)
+    # The whole batch vmapped (the accelerator default), for comparison.
+    rows += ours("sample", grid=128, batch=32, runs=big, parallel=32)
+    rows += ours("train", grid=320, steps=5, batch=1, runs=big)
+    rows += ours("train", grid=320, steps=5, batch=1, runs=big, remat="off")
+    rows += ours("score", grid=320, steps=25, batch=1, runs=big)
+    cpu = {"config": "cpu"}
+    rows += ours("train", steps=25, batch=4, runs=r, **cpu)
+    rows += ours("score", steps=25, batch=8, runs=r, **cpu)
+    if args.workdir and not os.path.isdir(os.path.join(args.workdir, "checkpoints")):
+        rows.append({"what": "skipped", "reason": f"{args.workdir}: no trained model; train "
+                     "the cpu model (experiments/results/README.md) to time its sampling"})
+    elif args.workdir:
+        for b in (1, 32):
+            rows += ours("sample", batch=b, runs=big, workdir=args.workdir, data=args.data,
+                         **cpu)
+    return rows
+
+
+def cpu_peer(args) -> list[dict]:
+    py = torch_env()
+    if py is None:
+        return [{"what": "error", "reason": f"{TORCH_REF} not found"}]
+    rows = []
+    m = ["--map-ch", str(MAP_CHANNELS)]
+    for fast in ([], ["--channels-last", "--bf16"]):
+        for grid in (64, 128):
+            rows += peer(py, "train", "--grid", str(grid), "--steps", "25", *m, *fast)
+            rows += peer(py, "score", "--grid", str(grid), "--steps", "25", *m, *fast)
+        for b in ("1", "8"):
+            rows += peer(py, "sample", "--grid", "128", "--batch", b, *m, *fast)
+        rows += peer(py, "train", "--grid", "320", "--steps", "5", "--runs", "3", *m,
+                     *fast)
+        rows += peer(py, "score", "--grid", "320", "--steps", "25", "--runs", "3", *m,
+                     *fast)
+    return rows + peer(py, "ceiling")
+
+
+def accel_ours(args) -> list[dict]:
+    """The paper preset on an accelerator: its own grid (320, T 25) and 128 at B 1 (the paper
+    trains with B 1 per GPU; B 16 on one 80 GB GPU runs out of memory, as the reference's
+    does), scoring also at B 16."""
+    r, big, rows = args.runs, max(2, args.runs // 2), []
+    for grid in (320, 128):
+        for remat in ("on", "off"):
+            rows += ours("train", grid=grid, steps=25, batch=1, runs=r, remat=remat)
+        rows += ours("score", grid=grid, steps=25, batch=1, runs=r)
+        for b in (1, 32):
+            rows += ours("sample", grid=grid, batch=b, runs=big)
+    rows += ours("score", grid=320, steps=25, batch=16, runs=big)
+    return rows
+
+
+def accel_peer(args) -> list[dict]:
+    """The reference on the same CUDA device (bench/torch_ref_cuda.py), float32 and its fast
+    mode, on the shapes of `accel_ours`; sampling at B 1, 8 and 32."""
+    run = functools.partial(peer, sys.executable, script=os.path.join(HERE, "torch_ref_cuda.py"))
+    rows, m = [], ["--ref", args.ref, "--map-ch", str(MAP_CHANNELS)]
+    for fast in ([], ["--channels-last", "--bf16"]):
+        for grid in ("320", "128"):
+            for kind in ("train", "score"):
+                rows += run(kind, "--grid", grid, "--steps", "25", *m, *fast)
+            for b in ("1", "8", "32"):
+                rows += run("sample", "--grid", grid, "--batch", b, *m, *fast)
+        rows += run("score", "--grid", "320", "--steps", "25", "--batch", "16", "--runs", "3",
+                    *m, *fast)
+    return rows
+
+
 def main_all(args) -> None:
+    import jax
+
     rows: list[dict] = [{
         "what": "env", "machine": platform.processor() or platform.machine(),
-        "cpus": os.cpu_count(), "python": platform.python_version(),
-        "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+        "cpus": os.cpu_count(), "python": platform.python_version(), "jax": jax.__version__,
+        **device_fields(), "date": time.strftime("%Y-%m-%d %H:%M:%S"),
     }]
-    r = args.runs
-    big = max(2, r // 2)
+    accel = args.suite == "accel"
     if args.only in (None, "ours"):
-        import jax
-
-        rows[0]["jax"] = jax.__version__
-        for grid in (64, 128):
-            rows += ours("train", grid=grid, steps=25, batch=1, runs=r)
-            rows += ours("score", grid=grid, steps=25, batch=1, runs=r)
-        rows += ours("train", grid=128, steps=25, batch=1, runs=r, remat="off")
-        rows += ours("score", grid=128, steps=25, batch=8, runs=big)
-        for b in (1, 32):
-            rows += ours("sample", grid=128, batch=b, runs=r if b == 1 else big)
-        # The whole batch vmapped (the accelerator default), for comparison.
-        rows += ours("sample", grid=128, batch=32, runs=big, parallel=32)
-        rows += ours("train", grid=320, steps=5, batch=1, runs=big)
-        rows += ours("train", grid=320, steps=5, batch=1, runs=big, remat="off")
-        rows += ours("score", grid=320, steps=25, batch=1, runs=big)
-        cpu = {"config": "cpu"}
-        rows += ours("train", steps=25, batch=4, runs=r, **cpu)
-        rows += ours("score", steps=25, batch=8, runs=r, **cpu)
-        if args.workdir and not os.path.isdir(os.path.join(args.workdir, "checkpoints")):
-            rows.append({"what": "skipped", "reason": f"{args.workdir}: no trained model; train "
-                         "the cpu model (experiments/results/README.md) to time its sampling"})
-        elif args.workdir:
-            for b in (1, 32):
-                rows += ours("sample", batch=b, runs=big, workdir=args.workdir, data=args.data,
-                             **cpu)
-        rows.append({**ceiling_ours(r), "ours": True})
+        rows += accel_ours(args) if accel else cpu_ours(args)
+        rows.append({**ceiling_ours(args.runs), "ours": True})
     if args.only in (None, "torch"):
-        py = torch_env()
-        if py is None:
-            rows.append({"what": "error", "reason": f"{TORCH_REF} not found"})
-        else:
-            m = ["--map-ch", str(MAP_CHANNELS)]
-            for fast in ([], ["--channels-last", "--bf16"]):
-                for grid in (64, 128):
-                    rows += peer(py, "train", "--grid", str(grid), "--steps", "25", *m, *fast)
-                    rows += peer(py, "score", "--grid", str(grid), "--steps", "25", *m, *fast)
-                for b in ("1", "8"):
-                    rows += peer(py, "sample", "--grid", "128", "--batch", b, *m, *fast)
-                rows += peer(py, "train", "--grid", "320", "--steps", "5", "--runs", "3", *m,
-                             *fast)
-                rows += peer(py, "score", "--grid", "320", "--steps", "25", "--runs", "3", *m,
-                             *fast)
-            rows += peer(py, "ceiling")
+        rows += accel_peer(args) if accel else cpu_peer(args)
     if args.only and os.path.exists(args.out):  # keep the other side's rows from last time
         with open(args.out) as f:
             kept = [r for r in json.load(f)["rows"] if r.get("ours") is (args.only == "torch")]
@@ -431,11 +487,15 @@ def main_all(args) -> None:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    p.add_argument("--out", default=os.path.join(HERE, "results.json"))
+    p.add_argument("--out", help="default: bench/results.json, or results_accel.json")
     p.add_argument("--only", choices=("ours", "torch"))
     p.add_argument("--runs", type=int, default=5)
     p.add_argument("--workdir", help="trained cpu model: sample on real maps (cpu config)")
     p.add_argument("--data", default="runs/cache_cpu_val", help="cache for --workdir sampling")
+    p.add_argument("--suite", choices=("cpu", "accel"), default="cpu",
+                   help="accel: the paper preset on the accelerator jax finds, against the "
+                   "reference on the same CUDA device (bench/results_accel.json)")
+    p.add_argument("--ref", default=TORCH_REF, help="the reference's folder (accel suite)")
     sub = p.add_subparsers(dest="cmd")
     c = sub.add_parser("case", help="one measurement of ours, in this process")
     c.add_argument("kind", choices=("train", "score", "sample"))
@@ -452,6 +512,8 @@ def main() -> None:
     c.add_argument("--workdir")
     c.add_argument("--data")
     args = p.parse_args()
+    args.out = args.out or os.path.join(
+        HERE, "results_accel.json" if args.suite == "accel" else "results.json")
     if args.cmd == "case":
         print("RESULT " + json.dumps(run_case(args)), flush=True)
     else:

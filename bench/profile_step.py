@@ -1,7 +1,7 @@
 """Where a train step's time goes: XLA:CPU thunk times from a `jax.profiler` trace.
 
-    .venv/bin/python bench/profile.py cpu max_actors=24                 # cpu config, T = 40
-    .venv/bin/python bench/profile.py paper grid_size=128 m_per_px=0.625 max_actors=24 \
+    .venv/bin/python bench/profile_step.py cpu max_actors=24                 # cpu config, T = 40
+    .venv/bin/python bench/profile_step.py paper grid_size=128 m_per_px=0.625 max_actors=24 \
         bptt_window=25 batch_size=1                                     # the reference's shape
 
 Prints XLA's buffer plan of the compiled step (`memory_analysis`: the temporaries are most
