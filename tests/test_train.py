@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -291,6 +292,28 @@ def test_load_trained_picks_a_saved_step(tmp_path):
     assert int(load_trained(workdir, 1)[1].step) == 1
     with pytest.raises(ValueError, match=r"no checkpoint at step 5; saved: \[1, 2\]"):
         load_trained(workdir, 5)
+
+
+def test_compile_cache_is_written_where_configured(tmp_path):
+    script = """
+import json, os, jax, jax.numpy as jnp
+from scenegen_jax.cli import enable_compile_cache
+os.environ["SCENEGEN_COMPILE_CACHE"] = "off"
+off = enable_compile_cache()
+del os.environ["SCENEGEN_COMPILE_CACHE"]
+on = enable_compile_cache()
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
+jax.jit(lambda x: jnp.cumsum(x) * 3)(jnp.arange(5.0)).block_until_ready()
+print(json.dumps({"off": off, "on": on, "files": sorted(os.listdir(on))}))
+"""
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_COMPILATION", "SCENEGEN"))}
+    env.update(XDG_CACHE_HOME=str(tmp_path), JAX_PLATFORMS="cpu")
+    res = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr[-2000:]
+    out = json.loads(res.stdout.splitlines()[-1])
+    assert out["off"] is None
+    assert out["on"] == str(tmp_path / "scenegen_jax" / "jax")
+    assert any(f.startswith("jit__lambda-") for f in out["files"]), out["files"]
 
 
 @pytest.mark.slow
