@@ -30,9 +30,15 @@ from scenegen_jax.train.step import (
     loss_fn,
     make_optimizer,
     make_train_step,
+    nll_metrics,
     train_step,
 )
-from scenegen_jax.train.unroll import reference_step_terms, unroll_terms
+from scenegen_jax.train.unroll import (
+    num_windows,
+    reference_step_terms,
+    unroll_terms,
+    unroll_terms_and_grads,
+)
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -100,6 +106,35 @@ def test_remat_gives_the_same_loss_and_gradients(tiny_train_cache, small_scenes,
     assert float(jnp.abs(plain[1]["backbone0_w"]).max()) > 0  # the recomputed part has gradient
     for a, b in zip(jax.tree.leaves(remat[1]), jax.tree.leaves(plain[1]), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6 * float(np.abs(b).max()))
+
+
+@pytest.mark.parametrize("remat,compiled_loop", [(False, False), (True, True)])
+def test_window_by_window_gradient_equals_autodiff(tiny_train_cache, small_scenes, remat,
+                                                   compiled_loop, monkeypatch):
+    """The train step's gradient, taken one window at a time (windows of 5, four per scene;
+    in a Python loop as on CPU, or in the `lax.scan` of accelerators), equals jax.grad of the
+    mean scene NLL through the whole unroll (Python loop)."""
+    import scenegen_jax.train.unroll as unroll
+
+    cfg = CFG.replace(bptt_window=5, remat=remat)
+    assert num_windows(cfg) == 4
+    maps, scene = crop_batch(_batch(tiny_train_cache, small_scenes), jnp.array([0.5, 2.0]), cfg)
+    params = init_params(cfg, jax.random.key(4))
+    (loss, stats), grads = jax.jit(jax.value_and_grad(loss_fn, has_aux=True), static_argnums=1)(
+        params, cfg, maps, scene)
+    monkeypatch.setattr(unroll, "compiled_window_loop", lambda: compiled_loop)
+    unrolled, windowed = jax.jit(
+        lambda p: unroll_terms_and_grads(p, cfg, maps, scene, 1.0 / 2))(params)
+    scene_nll, stats_w = nll_metrics(*unrolled)
+    _, stats_fwd = nll_metrics(*jax.jit(
+        lambda p: unroll_terms(p, cfg, maps, scene, cfg.hard_negatives))(params))
+    np.testing.assert_allclose(jnp.mean(scene_nll), loss, rtol=1e-6)
+    for k, v in stats.items():
+        np.testing.assert_allclose(stats_w[k], v, rtol=1e-6)
+        np.testing.assert_allclose(stats_fwd[k], v, rtol=1e-6)
+    assert float(jnp.abs(grads["lstm1_map"]).max()) > 0  # the map share's gradient is there
+    for a, b in zip(jax.tree.leaves(windowed), jax.tree.leaves(grads), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5 * float(np.abs(b).max()))
 
 
 def test_location_head_single_example_path_agrees(tiny_train_cache):

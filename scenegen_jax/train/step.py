@@ -17,7 +17,7 @@ from scenegen_jax.distributions import TERMS
 from scenegen_jax.model.network import init_params
 from scenegen_jax.raster.transform import scene_from_cached
 from scenegen_jax.scene import CLASS_NAMES, STOP, Actors
-from scenegen_jax.train.unroll import unroll_terms
+from scenegen_jax.train.unroll import unroll_terms, unroll_terms_and_grads
 
 
 class TrainState(NamedTuple):
@@ -108,7 +108,9 @@ def train_step(state: TrainState, batch: Batch, cfg: Config) -> tuple[TrainState
     if cfg.map_dropout > 0:
         keep = jax.random.uniform(jax.random.fold_in(key, 1), (b, 1, 1, 1)) >= cfg.map_dropout
         maps = maps * keep
-    (loss, stats), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params, cfg, maps, scene)
+    unrolled, grads = unroll_terms_and_grads(state.params, cfg, maps, scene, 1.0 / b)
+    scene_nll, stats = nll_metrics(*unrolled)
+    loss = jnp.mean(scene_nll)  # = loss_fn; grads = its gradient, one window at a time
     updates, opt_state = make_optimizer(cfg).update(grads, state.opt_state, state.params)
     params = optax.apply_updates(state.params, updates)
     stats = {**stats, "loss": loss, "grad_norm": optax.global_norm(grads)}

@@ -4,10 +4,12 @@ Step t of a scene with n actors predicts actor t (t < n) or the stop token (t = 
 t > n are padding. Steps run in windows of `cfg.bptt_window`: the ConvLSTM state is carried
 from window to window with its gradient cut (truncated backprop through time).
 
-Loops are unrolled at trace time (Python loops over windows and steps): XLA:CPU runs
-convolution gradients inside while loops and conditionals 10-20x slower than at the top level
-(jax-ml/jax#12868). Every window always runs, so `cfg.max_actors` should fit the data
-(overflow is counted).
+Steps are unrolled at trace time (Python loops): XLA:CPU runs convolution gradients inside
+while loops and conditionals 10-20x slower than at the top level (jax-ml/jax#12868). Windows
+run through `scan_windows`: a Python loop on CPU, a `lax.scan` (one window compiled) on
+accelerators. The train step takes each window's gradient right after that window
+(`unroll_terms_and_grads`), so it holds one window's activations. Every window always runs,
+so `cfg.max_actors` should fit the data (overflow is counted).
 
 Inside a window (the fast path; measurements in bench/README.md):
   * the map share of layer 1's input convolution is computed once per scene (`map_gates`),
@@ -30,6 +32,7 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -133,6 +136,128 @@ def head_terms(net: SceneGenNet, params, heads, targets: Actors, is_stop, cfg: C
     return jax.vmap(ll)(head, targets, is_stop)
 
 
+def compiled_window_loop() -> bool:
+    return jax.default_backend() != "cpu"
+
+
+def scan_windows(body, init, windows: int):
+    """`lax.scan(body, init, jnp.arange(windows))`: a compiled loop on accelerators (one window
+    compiled, whatever the count); on XLA:CPU, which runs convolutions inside loops many times
+    slower (above; a train step at grid 128 went from 3.6 s to minutes as a one-iteration
+    loop), a Python loop over the same body."""
+    if compiled_window_loop():
+        return jax.lax.scan(body, init, jnp.arange(windows))
+    carry, outs = init, []
+    for index in range(windows):
+        carry, out = body(carry, index)
+        outs.append(out)
+    return carry, jax.tree.map(lambda *x: jnp.stack(x), *outs)
+
+
+class _Scenes(NamedTuple):
+    """What every window of a batch of scenes reads: actors padded to whole windows [B, T],
+    actor counts [B], the ego-only raster [B, H, W, 9] and the zero ConvLSTM state."""
+
+    actors: Actors
+    n_actors: jnp.ndarray
+    raster0: jnp.ndarray
+    state0: Any
+
+
+def _scenes(params, cfg: Config, scene: Scene) -> _Scenes:
+    net = SceneGenNet(cfg)
+    b = scene.ego.cls.shape[0]
+    draw = jax.vmap(functools.partial(draw_actor, cfg=cfg))
+    raster0 = draw(
+        jnp.broadcast_to(empty_actor_raster(cfg), (b, *empty_actor_raster(cfg).shape)),
+        scene.ego,
+        jnp.ones((b,), bool),
+    )
+    return _Scenes(
+        actors=_pad_slots(scene.actors, num_windows(cfg) * cfg.bptt_window),
+        n_actors=jnp.sum(scene.actors.valid, axis=1),
+        raster0=raster0,
+        state0=net.apply({"params": params}, b, method=SceneGenNet.initial_state),
+    )
+
+
+def window_terms(params, map_gates, carry, start, scenes: _Scenes, cfg: Config,
+                 hard_negatives: int | None):
+    """One window: the `cfg.bptt_window` steps from step `start` (may be traced), given the
+    carried (ConvLSTM state, actor raster); returns (carry, terms name -> [B, W], zero at
+    padding steps). The carry is an input like any other: callers cut its gradient."""
+    net = SceneGenNet(cfg)
+
+    def apply(method, *args):
+        return net.apply({"params": params}, *args, method=method)
+
+    def chunk_heads(params, h2, cls, bins):
+        f = net.apply({"params": params}, h2, method=SceneGenNet.features)
+        return step_heads(net, params, f, cls, bins)
+
+    remat_heads = recompute_in_backward(chunk_heads)
+    state, raster = carry
+    b, w = map_gates.shape[0], cfg.bptt_window
+    draw = jax.vmap(functools.partial(draw_actor, cfg=cfg))
+    win = jax.tree.map(lambda x: jax.lax.dynamic_slice_in_dim(x, start, w, axis=1), scenes.actors)
+
+    def add(r, a):  # the raster before actor j, then actor j drawn
+        return draw(r, a, jnp.zeros((b,), bool)), r
+
+    raster_end, rasters = jax.lax.scan(
+        add, raster, jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), win)
+    )
+    t = start + jnp.arange(w)
+    targets, is_stop, valid = _step_targets(win, scenes.n_actors, t)
+    bins = bin_index(targets.position, cfg)  # [B, W]
+    chunk = head_chunk(cfg, b)
+    heads, pending = [], []
+    actor_gates = apply(SceneGenNet.actor_gates, rasters[0])
+    for c0 in range(0, w, chunk):
+        steps = range(c0, min(c0 + chunk, w))
+        h2s = []
+        for j in steps:
+            if j > 0:
+                actor_gates = apply(
+                    SceneGenNet.next_actor_gates,
+                    actor_gates, rasters[j - 1], rasters[j], win.position[:, j - 1],
+                )
+            state, h2 = apply(SceneGenNet.recur, state, actor_gates + map_gates)
+            h2s.append(h2)
+        cls = jnp.swapaxes(targets.cls[:, c0 : c0 + chunk], 0, 1).reshape(-1)
+        at = jnp.swapaxes(bins[:, c0 : c0 + chunk], 0, 1).reshape(-1)
+        args = (jnp.concatenate(h2s), cls, at)  # [n * B, ...] step-major
+        if not cfg.remat:
+            heads.append(chunk_heads(params, *args))
+            continue
+        # One chunk late: the state passed through is the one after the next chunk, so
+        # the backward recomputes this chunk while the next one's recurrence runs.
+        pending.append(args)
+        if len(pending) == 2:
+            out, state = remat_heads(params, *pending.pop(0), state)
+            heads.append(out)
+    for args in pending:
+        out, state = remat_heads(params, *args, state)
+        heads.append(out)
+    # The densities are cheap and small: one batched call over the window's steps.
+    heads = jax.tree.map(lambda *x: jnp.concatenate(x), *heads)  # [W * B, ...] step-major
+    flat = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1).reshape(w * b, *x.shape[2:]), targets)
+    terms = head_terms(
+        net, params, heads, flat, jnp.swapaxes(is_stop, 0, 1).reshape(-1), cfg, hard_negatives
+    )
+    terms = {k: jnp.swapaxes(v.reshape(w, b), 0, 1) * valid for k, v in terms.items()}
+    return (state, raster_end), terms
+
+
+def _join_windows(terms: dict, scenes: _Scenes):
+    """terms name -> [windows, B, W] as (terms [B, T], step_valid [B, T], step_cls [B, T])."""
+    terms = {k: jnp.concatenate(list(v), axis=1) for k, v in terms.items()}
+    t = jnp.arange(scenes.actors.cls.shape[1])
+    step_valid = t[None] <= scenes.n_actors[:, None]
+    step_cls = jnp.where(t[None] == scenes.n_actors[:, None], STOP, scenes.actors.cls)
+    return terms, step_valid, step_cls
+
+
 def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | None):
     """Log-likelihood terms of every step of a batch of scenes, teacher forced.
 
@@ -146,95 +271,59 @@ def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | 
       (terms: dict name -> [B, T] log-likelihoods, zero at padding steps; step_valid [B, T];
       step_cls [B, T] with STOP at the stop step), T = windows * cfg.bptt_window.
     """
-    net = SceneGenNet(cfg)
-
-    def apply(method, *args):
-        return net.apply({"params": params}, *args, method=method)
-
-    b = maps.shape[0]
-    w = cfg.bptt_window
-    nwin = num_windows(cfg)
-    actors = _pad_slots(scene.actors, nwin * w)
-    n_actors = jnp.sum(scene.actors.valid, axis=1)
-    map_gates = apply(SceneGenNet.map_gates, maps)
-    draw = jax.vmap(functools.partial(draw_actor, cfg=cfg))
-    raster0 = draw(
-        jnp.broadcast_to(empty_actor_raster(cfg), (b, *empty_actor_raster(cfg).shape)),
-        scene.ego,
-        jnp.ones((b,), bool),
-    )
-    state0 = net.apply({"params": params}, b, method=SceneGenNet.initial_state)
-
-    def chunk_heads(params, h2, cls, bins):
-        f = net.apply({"params": params}, h2, method=SceneGenNet.features)
-        return step_heads(net, params, f, cls, bins)
-
-    remat_heads = recompute_in_backward(chunk_heads)
-
-    def run(state, raster, start):
-        win = jax.tree.map(lambda x: jax.lax.dynamic_slice_in_dim(x, start, w, axis=1), actors)
-
-        def add(r, a):  # the raster before actor j, then actor j drawn
-            return draw(r, a, jnp.zeros((b,), bool)), r
-
-        raster_end, rasters = jax.lax.scan(
-            add, raster, jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), win)
-        )
-        t = start + jnp.arange(w)
-        targets, is_stop, valid = _step_targets(win, n_actors, t)
-        bins = bin_index(targets.position, cfg)  # [B, W]
-        chunk = head_chunk(cfg, b)
-        heads, pending = [], []
-        actor_gates = apply(SceneGenNet.actor_gates, rasters[0])
-        for c0 in range(0, w, chunk):
-            steps = range(c0, min(c0 + chunk, w))
-            h2s = []
-            for j in steps:
-                if j > 0:
-                    actor_gates = apply(
-                        SceneGenNet.next_actor_gates,
-                        actor_gates, rasters[j - 1], rasters[j], win.position[:, j - 1],
-                    )
-                state, h2 = apply(SceneGenNet.recur, state, actor_gates + map_gates)
-                h2s.append(h2)
-            cls = jnp.swapaxes(targets.cls[:, c0 : c0 + chunk], 0, 1).reshape(-1)
-            at = jnp.swapaxes(bins[:, c0 : c0 + chunk], 0, 1).reshape(-1)
-            args = (jnp.concatenate(h2s), cls, at)  # [n * B, ...] step-major
-            if not cfg.remat:
-                heads.append(chunk_heads(params, *args))
-                continue
-            # One chunk late: the state passed through is the one after the next chunk, so
-            # the backward recomputes this chunk while the next one's recurrence runs.
-            pending.append(args)
-            if len(pending) == 2:
-                out, state = remat_heads(params, *pending.pop(0), state)
-                heads.append(out)
-        for args in pending:
-            out, state = remat_heads(params, *args, state)
-            heads.append(out)
-        # The densities are cheap and small: one batched call over the window's steps.
-        heads = jax.tree.map(lambda *x: jnp.concatenate(x), *heads)  # [W * B, ...] step-major
-        flat = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1).reshape(w * b, *x.shape[2:]), targets)
-        terms = head_terms(
-            net, params, heads, flat, jnp.swapaxes(is_stop, 0, 1).reshape(-1), cfg, hard_negatives
-        )
-        terms = {k: jnp.swapaxes(v.reshape(w, b), 0, 1) * valid for k, v in terms.items()}
-        return (state, raster_end), terms
+    scenes = _scenes(params, cfg, scene)
+    map_gates = SceneGenNet(cfg).apply({"params": params}, maps, method=SceneGenNet.map_gates)
 
     def window(carry, index):
-        state, raster = carry
-        state = jax.lax.stop_gradient(state)  # truncated BPTT: no gradient across windows
-        return run(state, raster, index * w)
+        carry = jax.lax.stop_gradient(carry)  # truncated BPTT: no gradient across windows
+        return window_terms(params, map_gates, carry, index * cfg.bptt_window, scenes, cfg,
+                            hard_negatives)
 
-    carry, per_window = (state0, raster0), []
-    for index in range(nwin):
-        carry, terms = window(carry, index)
-        per_window.append(terms)
-    terms = {k: jnp.concatenate([t[k] for t in per_window], axis=1) for k in TERMS}
-    t = jnp.arange(nwin * w)
-    step_valid = t[None] <= n_actors[:, None]
-    step_cls = jnp.where(t[None] == n_actors[:, None], STOP, actors.cls)
-    return terms, step_valid, step_cls
+    _, terms = scan_windows(window, (scenes.state0, scenes.raster0), num_windows(cfg))
+    return _join_windows(terms, scenes)
+
+
+def unroll_terms_and_grads(params, cfg: Config, maps, scene: Scene, scale):
+    """`unroll_terms` with the training normaliser, and the gradient of
+    -scale * (sum of all terms) with respect to params, computed window by window.
+
+    No gradient crosses a window boundary (truncated BPTT), so each window's backward pass
+    runs right after its forward pass, in a `lax.scan` over the windows: on an accelerator
+    the train step holds one window's activations and compiles one window, whatever
+    `cfg.max_actors` (the `paper` preset has 6 windows; on CPU the windows are unrolled,
+    `scan_windows`). The map share of layer 1's input gates is still computed
+    once per scene; its gradient is summed over the windows and taken through the map
+    convolution once. Equal to `jax.grad` of that sum through `unroll_terms` (tested).
+    """
+    net = SceneGenNet(cfg)
+    scenes = _scenes(params, cfg, scene)
+    map_gates, map_vjp = jax.vjp(
+        lambda p: net.apply({"params": p}, maps, method=SceneGenNet.map_gates), params
+    )
+
+    def window(acc, index):
+        carry, g_params, g_map = acc
+
+        def loss(p, gates):
+            out, terms = window_terms(p, gates, carry, index * cfg.bptt_window, scenes, cfg,
+                                      cfg.hard_negatives)
+            return -scale * sum(jnp.sum(v) for v in terms.values()), (out, terms)
+
+        (_, (carry, terms)), (gp, gm) = jax.value_and_grad(loss, (0, 1), has_aux=True)(
+            params, map_gates
+        )
+        # The next window starts once this one's backward is done (a zero taken from its
+        # gradient: XLA does not fold 0 * x for floats), so unrolled windows (CPU) also hold
+        # one window's activations at a time.
+        zero = 0.0 * gm.ravel()[0]
+        carry = jax.tree.map(lambda x: x + zero.astype(x.dtype), carry)
+        return (carry, jax.tree.map(jnp.add, g_params, gp), g_map + gm), terms
+
+    zeros = jax.tree.map(jnp.zeros_like, params)
+    init = ((scenes.state0, scenes.raster0), zeros, jnp.zeros_like(map_gates))
+    (_, g_params, g_map), terms = scan_windows(window, init, num_windows(cfg))
+    (g_from_map,) = map_vjp(g_map)
+    return _join_windows(terms, scenes), jax.tree.map(jnp.add, g_params, g_from_map)
 
 
 def reference_step_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | None):
