@@ -137,6 +137,7 @@ def head_terms(net: SceneGenNet, params, heads, targets: Actors, is_stop, cfg: C
 
 
 def compiled_window_loop() -> bool:
+    """Whether `scan_windows` compiles a loop (everywhere but XLA:CPU)."""
     return jax.default_backend() != "cpu"
 
 
@@ -314,7 +315,8 @@ def unroll_terms_and_grads(params, cfg: Config, maps, scene: Scene, scale):
         )
         # The next window starts once this one's backward is done (a zero taken from its
         # gradient: XLA does not fold 0 * x for floats), so unrolled windows (CPU) also hold
-        # one window's activations at a time.
+        # one window's activations at a time. A NaN gradient would make the later windows
+        # NaN as well: that step is lost either way.
         zero = 0.0 * gm.ravel()[0]
         carry = jax.tree.map(lambda x: x + zero.astype(x.dtype), carry)
         return (carry, jax.tree.map(jnp.add, g_params, gp), g_map + gm), terms
