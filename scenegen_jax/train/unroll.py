@@ -145,8 +145,8 @@ def scan_windows(body, init, windows: int):
     """`lax.scan(body, init, jnp.arange(windows))`: a compiled loop on accelerators (one window
     compiled, whatever the count); on XLA:CPU, which runs convolutions inside loops many times
     slower (above; a train step at grid 128 went from 3.6 s to minutes as a one-iteration
-    loop), a Python loop over the same body."""
-    if compiled_window_loop():
+    loop), and for a single window, a Python loop over the same body."""
+    if compiled_window_loop() and windows > 1:
         return jax.lax.scan(body, init, jnp.arange(windows))
     carry, outs = init, []
     for index in range(windows):
