@@ -4,6 +4,8 @@ reference (`../shared/bench/torch_ref`), on the same shapes, in one run; JSON ou
     .venv/bin/python bench/run.py                      # everything -> bench/results.json
     .venv/bin/python bench/run.py --only ours          # skip the reference
     .venv/bin/python bench/run.py case train --grid 128 --steps 25 --batch 1   # one case
+    python bench/run.py --suite accel     # on a GPU: paper preset vs the reference on the
+                                          # same CUDA device -> bench/results_accel.json
 
 Every case runs in its own subprocess, so its peak memory (ru_maxrss) is its own, and each
 prints one `RESULT {json}` line. Timings: a warm-up call first (its time, compilation
