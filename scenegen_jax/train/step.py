@@ -90,7 +90,9 @@ def nll_metrics(terms: dict, step_valid, step_cls) -> tuple[jnp.ndarray, dict]:
 
 
 def loss_fn(params, cfg: Config, maps, scene):
-    """Mean scene NLL (nats) with the hard-negative location normaliser, and stats."""
+    """Mean scene NLL (nats) with the hard-negative location normaliser, and stats: the
+    plain definition. `train_step` computes the same value and its gradient window by window
+    (`unroll_terms_and_grads`); a test holds the two equal."""
     terms, step_valid, step_cls = unroll_terms(params, cfg, maps, scene, cfg.hard_negatives)
     scene_nll, stats = nll_metrics(terms, step_valid, step_cls)
     return jnp.mean(scene_nll), stats
