@@ -29,7 +29,8 @@ our rollout generates whole scenes, so we report ms per scene-step = wall time /
 steps generated (each scene's actors, plus its stopping step). Scenes vmapped together run as
 many iterations as the longest of them (finished scenes idle: that cost is ours); on CPU
 `sample_batch` runs the scenes one by one (`parallel` = 1; a B = 32 row with the whole batch
-vmapped is measured too). Random weights would stop at once, so the stop logit is lowered by
+vmapped is measured too) and `sample_scenes` splits the batch into one concurrent call per
+core (`workers`; a B = 32 row with one call is measured too). Random weights would stop at once, so the stop logit is lowered by
 10 (scenes then end when the ordering mask leaves no bin, or at max_actors).
 """
 
@@ -231,7 +232,7 @@ def sample_case(cfg, params, args) -> dict:
     import numpy as np
     from synthetic import synthetic_batch
 
-    from scenegen_jax.sampling.rollout import FULL, sample_scenes
+    from scenegen_jax.sampling.rollout import FULL, default_workers, sample_scenes
     from scenegen_jax.scene import STOP
     from scenegen_jax.train.step import crop_batch
 
@@ -258,7 +259,7 @@ def sample_case(cfg, params, args) -> dict:
 
     def fn():
         s = sample_scenes(jax.random.key(next(counter)), params, cfg, maps, scenes.ego,
-                          parallel=args.parallel)
+                          parallel=args.parallel, workers=args.workers)
         last["s"] = s
         return s.actors.valid
 
@@ -273,6 +274,7 @@ def sample_case(cfg, params, args) -> dict:
         loop_iterations=int(iterations.max()),
         scene_steps=int(iterations.sum()),
         parallel=args.parallel,
+        workers=default_workers() if args.workers is None else args.workers,
         scenes_per_s=b / r["median_s"],
         per_scene_step_ms=1e3 * r["median_s"] / int(iterations.sum()),
         trained_model=bool(args.workdir),
@@ -352,8 +354,8 @@ REF_WHAT = {"train": "train_step", "score": "score_fwd"}  # the reference's name
 def summarize(rows: list[dict]) -> dict:
     """Ratios ours / reference (throughput; > 1 means we are faster) on matching shapes: each
     `paper`-preset row of ours against the reference's float32 and fast-mode rows of the same
-    grid, T and B; sampling per generated scene-step against the reference's B = 8 and its
-    row of our own B, if any."""
+    grid, T and B; sampling per generated scene-step (each number of concurrent calls) against
+    the reference's B = 8 and its row of our own B, if any."""
 
     def peak(r):
         return r.get("peak_device_GiB", r.get("peak_rss_GiB"))
@@ -378,7 +380,8 @@ def summarize(rows: list[dict]) -> dict:
             elif (o["what"] == "sample" and p["what"] == "sample_step" and o.get("parallel") is None
                     and p["batch"] in (8, b)):
                 mode = mode.replace("_cl", "")
-                out[f"sample_grid{g}_ours_B{b}_vs_ref_B{p['batch']}_{mode}"] = {
+                calls = f"_{o['workers']}calls" if "workers" in o else ""
+                out[f"sample_grid{g}_ours_B{b}{calls}_vs_ref_B{p['batch']}_{mode}"] = {
                     "ours_ms_per_scene_step": o["per_scene_step_ms"],
                     "ref_ms_per_scene_step": p["per_scene_ms"],
                     "speedup": p["per_scene_ms"] / o["per_scene_step_ms"]}
@@ -394,7 +397,8 @@ def cpu_ours(args) -> list[dict]:
     rows += ours("score", grid=128, steps=25, batch=8, runs=big)
     for b in (1, 32):
         rows += ours("sample", grid=128, batch=b, runs=r if b == 1 else big)
-    # The whole batch vmapped (the accelerator default), for comparison.
+    # One call at a time, and the whole batch vmapped (the accelerator default), to compare.
+    rows += ours("sample", grid=128, batch=32, runs=big, workers=1)
     rows += ours("sample", grid=128, batch=32, runs=big, parallel=32)
     rows += ours("train", grid=320, steps=5, batch=1, runs=big)
     rows += ours("train", grid=320, steps=5, batch=1, runs=big, remat="off")
@@ -508,6 +512,8 @@ def main() -> None:
     c.add_argument("--runs", type=int, default=5)
     c.add_argument("--parallel", type=int, help="sampling: scenes vmapped together "
                    "(default: sample_batch's, 1 on CPU)")
+    c.add_argument("--workers", type=int, help="sampling: concurrent calls on parts of the "
+                   "batch (default: sample_split's, one per core on CPU)")
     c.add_argument("--remat", choices=("on", "off"),
                    help="train: recompute the backbone and heads in the backward pass (default: "
                    "the preset's, on for paper)")

@@ -195,7 +195,7 @@ def cmd_sample(args) -> None:
         actors_from_records,
         batch_inputs,
         frame_from_sample,
-        sample_batch,
+        sample_split,
     )
     from scenegen_jax.scene import CLASS_NAMES, NUM_CLASSES, Actors
     from scenegen_jax.train.loop import load_trained
@@ -279,7 +279,7 @@ def cmd_sample(args) -> None:
                 rows = [given_lines[k % len(given_lines)] for k in ks]
                 given = jax.tree.map(lambda *x: np.stack(x), *rows)
             keys = jax.vmap(lambda k: jax.random.fold_in(key, k))(jnp.asarray(ks))[:, None]
-            sample = sample_batch(
+            sample = sample_split(
                 keys,
                 params,
                 np.stack([map_of(i) for i in map_ids]),

@@ -233,6 +233,7 @@ class FakeModel:
         return gates
 
     def recur(self, params, state, gates):
+        state = self.initial_state(params) if state is None else state
         return state + 1, jnp.full((1, 1, 1, 1), state, jnp.float32)
 
     def features(self, params, h):
@@ -470,9 +471,11 @@ def real_inputs(val_cache):
     return params, np.stack(maps), jax.tree.map(lambda *x: np.stack(x), *egos)
 
 
-def run_real(params, maps, egos, key, given=None, caps=None, num_per_map=2, parallel=None):
+def run_real(params, maps, egos, key, given=None, caps=None, num_per_map=2, parallel=None,
+             workers=1):
     return jax.tree.map(np.asarray, sample_scenes(key, params, TINY, maps, egos, given,
-                                                  num_per_map, caps, parallel=parallel))
+                                                  num_per_map, caps, parallel=parallel,
+                                                  workers=workers))
 
 
 def check_scene(actors: Actors, ego: Actors, cfg, caps=None):
@@ -568,7 +571,8 @@ def test_real_network_given_actors_and_batch_equals_single_calls(real_inputs, va
 
     # Each scene of the [2, 2] batch equals a single-scene call with its key, whether the
     # scenes run one by one (the CPU default), three at a time (the last group padded) or all
-    # four vmapped. The
+    # four vmapped, and whether the batch runs as one call or as concurrent calls on parts
+    # split along the maps (2 workers) or the samples (3 workers > 2 maps). The
     # discrete outcome is identical; floats may differ in the last bits (XLA vectorises the
     # attribute MLP and mixture math differently at other batch shapes; positions are
     # bin-corner + offset - half region, whose cancellation leaves ~1e-5 m).
@@ -576,6 +580,7 @@ def test_real_network_given_actors_and_batch_equals_single_calls(real_inputs, va
     given_one, caps_one = batch_inputs(TINY, 1, given)
     batches = [out] + [run_real(params, maps, egos, key, given=given_b, parallel=p)
                        for p in (3, 4)]
+    batches += [run_real(params, maps, egos, key, given=given_b, workers=w) for w in (2, 3)]
     for b, s in itertools.product(range(2), range(2)):
         one = sample_batch(keys[b:b + 1, s:s + 1], params, maps[b:b + 1],
                            jax.tree.map(lambda x, b=b: x[b:b + 1], egos), given_one, caps_one,

@@ -238,13 +238,21 @@ class SceneGenNet(nn.Module):
         return jax.vmap(add)(gates, delta, row0, col0)
 
     def recur(self, state, input_gates):
-        """One ConvLSTM step given layer 1's input gates [B,H,W,4h]; returns (state, h2)."""
+        """One ConvLSTM step given layer 1's input gates [B,H,W,4h]; returns (state, h2).
+
+        state None is the zero state (`initial_state`, a scene's first step): the same
+        result, without the two recurrent convolutions of its zeros (XLA does not fold them).
+        """
+        zero = state is None
+        if zero:
+            state = self.initial_state(input_gates.shape[0])
         (h1, c1), (h2, c2) = state
-        h1, c1 = lstm_gates(input_gates + conv(h1, self.lstm1_rec), c1)
+        h1, c1 = lstm_gates(input_gates if zero else input_gates + conv(h1, self.lstm1_rec), c1)
         # Two convolutions instead of one over concat([h1, h2]): the same sum, and XLA:CPU
         # fuses the concatenation's gradient badly in the unrolled backward pass.
         h = self.cfg.hidden
-        gates2 = conv(h1, self.lstm2_w[:, :, :h]) + conv(h2, self.lstm2_w[:, :, h:], self.lstm2_b)
+        w2, b2 = self.lstm2_w, self.lstm2_b
+        gates2 = conv(h1, w2[:, :, :h]) + (b2 if zero else conv(h2, w2[:, :, h:], b2))
         h2, c2 = lstm_gates(gates2, c2)
         return ((h1, c1), (h2, c2)), h2
 

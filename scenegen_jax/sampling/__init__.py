@@ -3,7 +3,7 @@ masks and collision rejection, vmapped across scenes and keys.
 
 The per-scene function is `scenegen_jax.sampling.rollout.rollout` (not re-exported here, so
 that `scenegen_jax.sampling.rollout` stays the module); batches go through `sample_scenes` /
-`sample_batch`.
+`sample_split` / `sample_batch`.
 """
 
 from scenegen_jax.sampling.export import actor_records, actors_from_records, frame_from_sample
@@ -26,6 +26,7 @@ from scenegen_jax.sampling.rollout import (
     sample_attributes,
     sample_batch,
     sample_scenes,
+    sample_split,
     scene_keys,
 )
 
@@ -53,5 +54,6 @@ __all__ = [
     "sample_attributes",
     "sample_batch",
     "sample_scenes",
+    "sample_split",
     "scene_keys",
 ]

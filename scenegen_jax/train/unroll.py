@@ -20,6 +20,7 @@ Inside a window (the fast path; measurements in bench/README.md):
     in cache (`head_chunk`; one step at the paper's width and grid): batching a whole window
     made XLA:CPU's convolutions 2-4x slower once the batch left the cache;
   * the location head runs only for the class scored at each step;
+  * a scene's first step skips the recurrent convolutions of the zero initial state;
   * the densities (small) run once, batched over all steps of the window;
   * with `cfg.remat`, a chunk's backbone and heads are recomputed in the backward pass
     instead of stored (`recompute_in_backward`), each one chunk late so that the recomputation
@@ -186,7 +187,9 @@ def window_terms(params, map_gates, carry, start, scenes: _Scenes, cfg: Config,
                  hard_negatives: int | None):
     """One window: the `cfg.bptt_window` steps from step `start` (may be traced), given the
     carried (ConvLSTM state, actor raster); returns (carry, terms name -> [B, W], zero at
-    padding steps). The carry is an input like any other: callers cut its gradient."""
+    padding steps). The carry is an input like any other: callers cut its gradient. At a
+    static start 0 (a scene's first window) the state is the zero state: its first step skips
+    the recurrent convolutions of those zeros (`SceneGenNet.recur`)."""
     net = SceneGenNet(cfg)
 
     def apply(method, *args):
@@ -198,6 +201,8 @@ def window_terms(params, map_gates, carry, start, scenes: _Scenes, cfg: Config,
 
     remat_heads = recompute_in_backward(chunk_heads)
     state, raster = carry
+    if isinstance(start, int) and start == 0:
+        state = None
     b, w = map_gates.shape[0], cfg.bptt_window
     draw = jax.vmap(functools.partial(draw_actor, cfg=cfg))
     win = jax.tree.map(lambda x: jax.lax.dynamic_slice_in_dim(x, start, w, axis=1), scenes.actors)
