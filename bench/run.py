@@ -168,6 +168,7 @@ def run_case(args) -> dict:
     import jax
     from synthetic import synthetic_batch
 
+    from scenegen_jax.concurrency import concurrent_map, default_workers
     from scenegen_jax.eval.nll import score_batch
     from scenegen_jax.train.step import compile_train_step, init_state
 
@@ -192,9 +193,20 @@ def run_case(args) -> dict:
         flops = paper_flops(cfg.grid_size, args.steps, c_in, cfg.hidden)[1]
         out["GFLOP"] = flops * args.batch / 1e9
     elif args.kind == "score":
+        # As `score_cache` runs a batch: `workers` concurrent calls on equal parts of it.
+        workers = min(default_workers() if args.workers is None else args.workers, args.batch)
+        if args.batch % workers:
+            raise SystemExit(f"--batch {args.batch} is not a multiple of {workers} workers")
         batch = jax.device_put(synthetic_batch(cfg, args.batch, args.steps - 1, seed=1))
+        part = args.batch // workers
+        parts = [jax.tree.map(lambda x, i=i: x[i * part:(i + 1) * part], batch)
+                 for i in range(workers)]
         score = jax.jit(lambda p, b: score_batch(p, b, cfg)["class"])
-        out.update(timed(lambda: score(state.params, batch), args.runs), steps=args.steps)
+
+        def fn():
+            return list(concurrent_map(lambda b: score(state.params, b), parts, workers))
+
+        out.update(timed(fn, args.runs), steps=args.steps, workers=workers)
         out["scenes_per_s"] = args.batch / out["median_s"]
         flops = paper_flops(cfg.grid_size, args.steps, c_in, cfg.hidden)[0]
         out["GFLOP"] = flops * args.batch / 1e9
@@ -232,7 +244,8 @@ def sample_case(cfg, params, args) -> dict:
     import numpy as np
     from synthetic import synthetic_batch
 
-    from scenegen_jax.sampling.rollout import FULL, default_workers, sample_scenes
+    from scenegen_jax.concurrency import default_workers
+    from scenegen_jax.sampling.rollout import FULL, sample_scenes
     from scenegen_jax.scene import STOP
     from scenegen_jax.train.step import crop_batch
 
@@ -354,8 +367,8 @@ REF_WHAT = {"train": "train_step", "score": "score_fwd"}  # the reference's name
 def summarize(rows: list[dict]) -> dict:
     """Ratios ours / reference (throughput; > 1 means we are faster) on matching shapes: each
     `paper`-preset row of ours against the reference's float32 and fast-mode rows of the same
-    grid, T and B; sampling per generated scene-step (each number of concurrent calls) against
-    the reference's B = 8 and its row of our own B, if any."""
+    grid, T and B (`_Ncalls`: our batch ran as N concurrent calls); sampling per generated
+    scene-step against the reference's B = 8 and its row of our own B, if any."""
 
     def peak(r):
         return r.get("peak_device_GiB", r.get("peak_rss_GiB"))
@@ -366,6 +379,7 @@ def summarize(rows: list[dict]) -> dict:
         if not (o.get("ours") and o.get("config") == "paper" and o.get("median_s")):
             continue
         g, b = o["grid"], o["batch"]
+        calls = f"_{o['workers']}calls" if o.get("workers", 1) > 1 else ""
         for p in refs:
             mode = "bf16_cl" if p.get("bf16") else "fp32"
             if p.get("grid") != g:
@@ -373,14 +387,13 @@ def summarize(rows: list[dict]) -> dict:
             if (p["what"] == REF_WHAT.get(o["what"])
                     and (p["steps"], p["batch"]) == (o["steps"], b)):
                 what = "train_noremat" if o["what"] == "train" and not o.get("remat") else o["what"]
-                out[f"{what}_grid{g}_T{o['steps']}_B{b}_vs_{mode}"] = {
+                out[f"{what}_grid{g}_T{o['steps']}_B{b}{calls}_vs_{mode}"] = {
                     "ours_s": o["median_s"], "ref_s": p["median_s"],
                     "speedup": p["median_s"] / o["median_s"],
                     "ours_peak_GiB": peak(o), "ref_peak_GiB": peak(p)}
             elif (o["what"] == "sample" and p["what"] == "sample_step" and o.get("parallel") is None
                     and p["batch"] in (8, b)):
                 mode = mode.replace("_cl", "")
-                calls = f"_{o['workers']}calls" if "workers" in o else ""
                 out[f"sample_grid{g}_ours_B{b}{calls}_vs_ref_B{p['batch']}_{mode}"] = {
                     "ours_ms_per_scene_step": o["per_scene_step_ms"],
                     "ref_ms_per_scene_step": p["per_scene_ms"],
@@ -395,6 +408,7 @@ def cpu_ours(args) -> list[dict]:
         rows += ours("score", grid=grid, steps=25, batch=1, runs=r)
     rows += ours("train", grid=128, steps=25, batch=1, runs=r, remat="off")
     rows += ours("score", grid=128, steps=25, batch=8, runs=big)
+    rows += ours("score", grid=128, steps=25, batch=8, runs=big, workers=1)
     for b in (1, 32):
         rows += ours("sample", grid=128, batch=b, runs=r if b == 1 else big)
     # One call at a time, and the whole batch vmapped (the accelerator default), to compare.
@@ -426,6 +440,8 @@ def cpu_peer(args) -> list[dict]:
         for grid in (64, 128):
             rows += peer(py, "train", "--grid", str(grid), "--steps", "25", *m, *fast)
             rows += peer(py, "score", "--grid", str(grid), "--steps", "25", *m, *fast)
+        rows += peer(py, "score", "--grid", "128", "--steps", "25", "--batch", "8", "--runs",
+                     "3", *m, *fast)
         for b in ("1", "8"):
             rows += peer(py, "sample", "--grid", "128", "--batch", b, *m, *fast)
         rows += peer(py, "train", "--grid", "320", "--steps", "5", "--runs", "3", *m,
@@ -512,8 +528,8 @@ def main() -> None:
     c.add_argument("--runs", type=int, default=5)
     c.add_argument("--parallel", type=int, help="sampling: scenes vmapped together "
                    "(default: sample_batch's, 1 on CPU)")
-    c.add_argument("--workers", type=int, help="sampling: concurrent calls on parts of the "
-                   "batch (default: sample_split's, one per core on CPU)")
+    c.add_argument("--workers", type=int, help="sampling and scoring: concurrent calls on "
+                   "parts of the batch (default: one per core on CPU)")
     c.add_argument("--remat", choices=("on", "off"),
                    help="train: recompute the backbone and heads in the backward pass (default: "
                    "the preset's, on for paper)")

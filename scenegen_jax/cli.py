@@ -445,7 +445,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--step", type=int, help="checkpoint step to load (default: the latest)")
     sp.add_argument("--data", required=True, help="cache directory to score")
     sp.add_argument("--out", required=True, help="CSV, one row per scene")
-    sp.add_argument("--batch-size", type=int, default=8)
+    sp.add_argument("--batch-size", type=int, default=8,
+                    help="scenes per batch, split into concurrent calls (one per core on CPU)")
     sp.add_argument("--actors-out", help="optional .npz of per-step NLL terms")
     sp.add_argument("--top-k", type=int, default=0,
                     help="render the K scenes with the highest NLL per actor (needs --render)")
@@ -474,7 +475,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument(
         "--index", type=int, nargs="*", help="cache scene indices to cycle through (default: all)"
     )
-    sp.add_argument("--batch-size", type=int, default=8, help="scenes per compiled call")
+    sp.add_argument("--batch-size", type=int, default=8,
+                    help="scenes per batch, split into concurrent calls (one per core on CPU)")
     sp.set_defaults(func=cmd_sample)
     sp = sub.add_parser("evaluate", help="NLL and MMD of SceneGen and baselines (Table 1)")
     sp.add_argument("--workdir", required=True)

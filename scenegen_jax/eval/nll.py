@@ -12,6 +12,7 @@ from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 from tqdm import tqdm
 
+from scenegen_jax.concurrency import concurrent_map, default_workers
 from scenegen_jax.config import Config
 from scenegen_jax.data.cache import Cache
 from scenegen_jax.distributions import TERMS
@@ -41,28 +42,36 @@ def _jitted_scorer(cfg: Config, mesh):
     )
 
 
-def score_cache(params, cache: Cache, cfg: Config, batch_size: int = 8, progress: bool = True):
+def score_cache(params, cache: Cache, cfg: Config, batch_size: int = 8, progress: bool = True,
+                workers: int | None = None):
     """Scores every scene of a cache.
+
+    Each batch of `batch_size` scenes runs as `workers` concurrent calls on equal parts of
+    it (`concurrency.concurrent_map`; default one per core on CPU, 1 on accelerators); every
+    scene's scores are its own, whatever the batching.
 
     Returns:
       dict with per-step arrays over all scenes: term -> [S, T] NLL (nats), "step_valid"
       [S, T], "step_cls" [S, T] (STOP at the stop step).
     """
     mesh = make_mesh()
-    batch_size = max(batch_size // mesh.size, 1) * mesh.size
+    workers = default_workers() if workers is None else workers
+    per_call = max(batch_size // (workers * mesh.size), 1) * mesh.size
     fn = _jitted_scorer(cfg, mesh)
     params = jax.device_put(params, NamedSharding(mesh, P()))
     n = len(cache)
-    chunks = []
-    for start in tqdm(
-        range(0, n, batch_size), desc="score", unit="batch", file=sys.stderr, disable=not progress
-    ):
-        idx = np.arange(start, start + batch_size)
+
+    def call(start):
+        idx = np.arange(start, start + per_call)
         real = idx < n
-        idx = np.where(real, idx, 0)  # pad the last batch with scene 0, dropped below
+        idx = np.where(real, idx, 0)  # pad the last call with scene 0, dropped below
         host = gather_batch(cache, idx, cfg)
         out = jax.device_get(fn(params, to_device(host, NamedSharding(mesh, P("data")))))
-        chunks.append({k: v[real] for k, v in out.items()})
+        return {k: v[real] for k, v in out.items()}
+
+    starts = range(0, n, per_call)
+    chunks = list(tqdm(concurrent_map(call, starts, workers), total=len(starts), desc="score",
+                       unit="call", file=sys.stderr, disable=not progress))
     return {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
 
 

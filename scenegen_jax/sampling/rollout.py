@@ -9,8 +9,7 @@ it runs until every scene of the batch is done and finished scenes are left unch
 the per-scene results. `sample_batch` / `sample_scenes` map it over scenes and keys,
 `parallel` scenes vmapped at a time (on CPU one at a time, the fastest there), and
 `sample_split` / `sample_scenes` split a batch into `workers` concurrent `sample_batch` calls
-(on CPU one per core: the calls run side by side and fill the cores better than one call's
-intra-op threads).
+(`scenegen_jax.concurrency`; on CPU one per core).
 
 One step t (key `fold_in(key, t)`):
   1. Input gates = map gates (computed once per scene before the loop: the map is constant)
@@ -49,10 +48,8 @@ Positions are strictly inside their bin, hence inside the region.
 
 from __future__ import annotations
 
-import concurrent.futures
 import dataclasses
 import functools
-import os
 from typing import Any, Protocol
 
 import jax
@@ -61,6 +58,7 @@ import numpy as np
 from flax import struct
 from jax import lax
 
+from scenegen_jax.concurrency import concurrent_map, default_workers
 from scenegen_jax.config import Config
 from scenegen_jax.distributions import (
     box_proposal_score,
@@ -632,24 +630,11 @@ def default_parallel() -> int:
     return 1 if jax.default_backend() == "cpu" else 2**31 - 1
 
 
-def default_workers() -> int:
-    """Concurrent `sample_batch` calls of `sample_split` by default: one per CPU core on CPU,
-    1 on accelerators.
-
-    XLA:CPU runs calls made from different threads side by side. One call at a time leaves
-    the cores idle while a step's small serial operations run; two concurrent calls on 2 cores
-    sample 1.2x faster than one (bench/README.md).
-    """
-    if jax.default_backend() != "cpu":
-        return 1
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-
-
 def sample_split(keys: jax.Array, params: Any, maps, egos: Actors, given: Actors, caps, *,
                  workers: int | None = None, **kwargs) -> Sample:
     """`sample_batch(keys, params, maps, egos, given, caps, **kwargs)` as `workers`
-    concurrent calls on equal parts of the batch; each scene depends only on its own key and
-    inputs, so the scenes are those of a single call.
+    concurrent calls on equal parts of the batch (`concurrency.concurrent_map`); each scene
+    depends only on its own key and inputs, so the scenes are those of a single call.
 
     The batch is split along the maps axis B when B >= workers (or S = 1), else along the
     samples axis S. The last part is padded with copies of the last map (or key), so every
@@ -657,7 +642,8 @@ def sample_split(keys: jax.Array, params: Any, maps, egos: Actors, given: Actors
 
     Args:
       keys, params, maps, egos, given, caps: as in `sample_batch` (keys [B, S]).
-      workers: concurrent calls (threads); default `default_workers()`.
+      workers: concurrent calls (threads); default `concurrency.default_workers()` (one
+        per core on CPU, 1 on accelerators).
       **kwargs: `sample_batch`'s static arguments (cfg, proposals, ..., parallel).
 
     Returns:
@@ -676,17 +662,12 @@ def sample_split(keys: jax.Array, params: Any, maps, egos: Actors, given: Actors
     index = np.minimum(np.arange(parts * size), n - 1).reshape(parts, size)
     per_map = (maps, egos, given, caps)
 
-    def call(part):
-        i = index[part]
+    def call(i):
         if axis == 0:
-            args = (keys[i], *jax.tree.map(lambda x: x[i], per_map))
-        else:
-            args = (keys[:, i], *per_map)
-        # Wait inside the thread: calls that return before running would run one by one.
-        return jax.block_until_ready(sample_batch(args[0], params, *args[1:], **kwargs))
+            return sample_batch(keys[i], params, *jax.tree.map(lambda x: x[i], per_map), **kwargs)
+        return sample_batch(keys[:, i], params, *per_map, **kwargs)
 
-    with concurrent.futures.ThreadPoolExecutor(parts) as pool:
-        outs = list(pool.map(call, range(parts)))
+    outs = list(concurrent_map(call, index, workers))
     whole = slice(None)
     keep = (slice(0, n), whole) if axis == 0 else (whole, slice(0, n))
     return jax.tree.map(lambda *x: jnp.concatenate(x, axis=axis)[keep], *outs)
