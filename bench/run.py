@@ -287,7 +287,7 @@ def sample_case(cfg, params, args) -> dict:
         loop_iterations=int(iterations.max()),
         scene_steps=int(iterations.sum()),
         parallel=args.parallel,
-        workers=default_workers() if args.workers is None else args.workers,
+        workers=min(default_workers() if args.workers is None else args.workers, b),
         scenes_per_s=b / r["median_s"],
         per_scene_step_ms=1e3 * r["median_s"] / int(iterations.sum()),
         trained_model=bool(args.workdir),
@@ -379,7 +379,8 @@ def summarize(rows: list[dict]) -> dict:
         if not (o.get("ours") and o.get("config") == "paper" and o.get("median_s")):
             continue
         g, b = o["grid"], o["batch"]
-        calls = f"_{o['workers']}calls" if o.get("workers", 1) > 1 else ""
+        n_calls = min(o.get("workers", 1), b)  # concurrent calls on parts of the batch
+        calls = f"_{n_calls}calls" if n_calls > 1 else ""
         for p in refs:
             mode = "bf16_cl" if p.get("bf16") else "fp32"
             if p.get("grid") != g:
