@@ -3,7 +3,7 @@
 XLA:CPU runs calls made from different host threads side by side. One call at a time leaves
 a core idle whenever the program runs a small serial operation between its multi-threaded
 convolutions; concurrent calls on parts of a batch fill the cores (on 2 cores: sampling 1.2x
-faster, scoring 1.1x; bench/README.md). Accelerators run one batched call at a time.
+faster, scoring 1.05-1.1x; bench/README.md). Accelerators run one batched call at a time.
 """
 
 from __future__ import annotations
