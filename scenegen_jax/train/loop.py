@@ -107,8 +107,15 @@ def train(
     state = jax.device_put(state, NamedSharding(mesh, P()))
     start = int(state.step)
     metrics_path = os.path.join(workdir, "metrics.jsonl")
+    # With a time budget the budget usually ends the run, not the step count: no step ETA.
+    budget = None if max_seconds is None else (
+        "{desc}: {n_fmt}/{total_fmt} steps [{elapsed} of a "
+        + f"{tqdm.format_interval(max_seconds)} budget"
+        + ", {rate_fmt}{postfix}]"
+    )
     bar = tqdm(
-        total=steps, initial=start, desc="train", unit="step", file=sys.stderr, disable=not progress
+        total=steps, initial=start, desc="train", unit="step", file=sys.stderr,
+        disable=not progress, bar_format=budget,
     )
     acc, t0, n0 = None, time.perf_counter(), start
     t_start = t0
