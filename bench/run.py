@@ -30,8 +30,9 @@ steps generated (each scene's actors, plus its stopping step). Scenes vmapped to
 many iterations as the longest of them (finished scenes idle: that cost is ours); on CPU
 `sample_batch` runs the scenes one by one (`parallel` = 1; a B = 32 row with the whole batch
 vmapped is measured too) and `sample_scenes` splits the batch into one concurrent call per
-core (`workers`; a B = 32 row with one call is measured too). Random weights would stop at once, so the stop logit is lowered by
-10 (scenes then end when the ordering mask leaves no bin, or at max_actors).
+core (`workers`; a B = 32 row with one call is measured too). Batched scoring runs the same
+way (`score_cache`). Random weights would stop at once, so the stop logit is lowered by 10
+(scenes then end when the ordering mask leaves no bin, or at max_actors).
 """
 
 from __future__ import annotations
