@@ -419,6 +419,8 @@ def cpu_ours(args) -> list[dict]:
     rows += ours("train", grid=320, steps=5, batch=1, runs=big)
     rows += ours("train", grid=320, steps=5, batch=1, runs=big, remat="off")
     rows += ours("score", grid=320, steps=25, batch=1, runs=big)
+    for b in (1, 32):
+        rows += ours("sample", grid=320, batch=b, runs=big)
     cpu = {"config": "cpu"}
     rows += ours("train", steps=25, batch=4, runs=r, **cpu)
     rows += ours("score", steps=25, batch=8, runs=r, **cpu)
@@ -450,6 +452,7 @@ def cpu_peer(args) -> list[dict]:
                      *fast)
         rows += peer(py, "score", "--grid", "320", "--steps", "25", "--runs", "3", *m,
                      *fast)
+        rows += peer(py, "sample", "--grid", "320", "--batch", "8", "--runs", "3", *m, *fast)
     return rows + peer(py, "ceiling")
 
 
