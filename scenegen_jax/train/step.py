@@ -89,13 +89,17 @@ def nll_metrics(terms: dict, step_valid, step_cls) -> tuple[jnp.ndarray, dict]:
     return scene_nll, stats
 
 
+def mean_nll(unrolled) -> tuple[jnp.ndarray, dict]:
+    """The loss, mean scene NLL (nats), and stats from (terms, step_valid, step_cls)."""
+    scene_nll, stats = nll_metrics(*unrolled)
+    return jnp.mean(scene_nll), stats
+
+
 def loss_fn(params, cfg: Config, maps, scene):
     """Mean scene NLL (nats) with the hard-negative location normaliser, and stats: the
     plain definition. `train_step` computes the same value and its gradient window by window
     (`unroll_terms_and_grads`); a test holds the two equal."""
-    terms, step_valid, step_cls = unroll_terms(params, cfg, maps, scene, cfg.hard_negatives)
-    scene_nll, stats = nll_metrics(terms, step_valid, step_cls)
-    return jnp.mean(scene_nll), stats
+    return mean_nll(unroll_terms(params, cfg, maps, scene, cfg.hard_negatives))
 
 
 def train_step(state: TrainState, batch: Batch, cfg: Config) -> tuple[TrainState, dict]:
@@ -110,9 +114,9 @@ def train_step(state: TrainState, batch: Batch, cfg: Config) -> tuple[TrainState
     if cfg.map_dropout > 0:
         keep = jax.random.uniform(jax.random.fold_in(key, 1), (b, 1, 1, 1)) >= cfg.map_dropout
         maps = maps * keep
+    # loss_fn's value, and its gradient taken one window at a time.
     unrolled, grads = unroll_terms_and_grads(state.params, cfg, maps, scene, 1.0 / b)
-    scene_nll, stats = nll_metrics(*unrolled)
-    loss = jnp.mean(scene_nll)  # = loss_fn; grads = its gradient, one window at a time
+    loss, stats = mean_nll(unrolled)
     updates, opt_state = make_optimizer(cfg).update(grads, state.opt_state, state.params)
     params = optax.apply_updates(state.params, updates)
     stats = {**stats, "loss": loss, "grad_norm": optax.global_norm(grads)}
