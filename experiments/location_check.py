@@ -1,13 +1,18 @@
-"""Location NLL per vehicle of trained models on a subset of a cache, next to a map-only
-reference: uniform over the scene's drivable bins (what knowing only "vehicles are on the
-road" gives). Used to tell overfitting from a map the model does not use (issue 4).
+"""Location NLL per actor of one class for trained models on a subset of a cache, next to
+map-only references: uniform over the scene's drivable bins, and uniform over its other bins
+(what knowing only "this class is on / off the road" gives). Used to tell overfitting from a
+map the model does not use (issue 4).
 
-Per model it also splits the vehicle location term in two: the share of the location mass on
-drivable bins (teacher forced, at the step of each real vehicle) and the NLL given that the
-vehicle is on the drivable area (renormalised over drivable bins; vehicles on it only).
+Per model it also splits the class's location term: the share of the location mass on
+drivable bins (teacher forced, at the step of each real actor of the class), the NLL given
+that the actor is on the drivable area (renormalised over drivable bins; actors on it only),
+and the NLL given that it is off (renormalised over the other bins; actors off it only). Per
+data set it prints how far the class's actors are from the drivable area.
 
   .venv/bin/python experiments/location_check.py --data runs/cache_cpu_train --every 8 \
       runs/cpu_map runs/cpu_nomap
+  .venv/bin/python experiments/location_check.py --cls pedestrian --data runs/cache_cpu_val \
+      runs/cpu_map_lr1e4_s0 runs/cpu_nomap_lr1e4_s0
 """
 
 from __future__ import annotations
@@ -26,7 +31,7 @@ from scenegen_jax.eval.nll import score_cache, summarize_scores
 from scenegen_jax.model.network import SceneGenNet
 from scenegen_jax.raster.actors import draw_actor, empty_actor_raster
 from scenegen_jax.raster.transform import crop_map
-from scenegen_jax.scene import VEHICLE, Actors, bin_index, in_region
+from scenegen_jax.scene import CLASS_NAMES, Actors, bin_index, in_region
 from scenegen_jax.train.data import gather_batch
 from scenegen_jax.train.loop import load_trained
 from scenegen_jax.train.step import crop_batch
@@ -54,12 +59,12 @@ def drivable_masks(cache, cfg) -> np.ndarray:
     ])
 
 
-def vehicle_steps(scene, cfg) -> tuple[np.ndarray, np.ndarray]:
-    """(keep [S, N]: valid vehicles inside the region, bins [S, N]) of cropped scenes, slot t
-    being teacher-forced step t."""
+def class_steps(scene, cfg, cls: int) -> tuple[np.ndarray, np.ndarray]:
+    """(keep [S, N]: valid actors of class `cls` inside the region, bins [S, N]) of cropped
+    scenes, slot t being teacher-forced step t."""
     a = scene.actors
     pos = jnp.asarray(a.position)
-    keep = np.asarray(in_region(pos, cfg) & a.valid & (a.cls == VEHICLE))
+    keep = np.asarray(in_region(pos, cfg) & a.valid & (a.cls == cls))
     return keep, np.asarray(bin_index(pos, cfg))
 
 
@@ -68,10 +73,10 @@ def cropped(cache, cfg):
     return crop_batch(gather_batch(cache, np.arange(len(cache)), cfg), jnp.zeros(len(cache)), cfg)
 
 
-def vehicle_location_log_probs(params, cfg, maps, scene) -> np.ndarray:
-    """[S, N, H*W] teacher-forced vehicle-head location log-probabilities at every step (the
-    unroll's recurrence written as a plain loop: analysis only, the scores come from
-    `score_cache`)."""
+def location_log_probs(params, cfg, maps, scene, cls: int) -> np.ndarray:
+    """[S, N, H*W] teacher-forced location log-probabilities of class `cls`'s head at every
+    step (the unroll's recurrence written as a plain loop: analysis only, the scores come
+    from `score_cache`)."""
     net = SceneGenNet(cfg)
 
     @jax.jit
@@ -89,7 +94,7 @@ def vehicle_location_log_probs(params, cfg, maps, scene) -> np.ndarray:
             gates = gates0 + apply(SceneGenNet.actor_gates, raster)
             state, h2 = apply(SceneGenNet.recur, state, gates)
             logits = apply(SceneGenNet.location_logits, apply(SceneGenNet.features, h2),
-                           jnp.full((b,), VEHICLE, jnp.int32))
+                           jnp.full((b,), cls, jnp.int32))
             out.append(jax.nn.log_softmax(logits))
             actor = jax.tree.map(lambda x, t=t: x[:, t], scene.actors)
             raster = draw(raster, actor, jnp.zeros((b,), bool))
@@ -100,50 +105,75 @@ def vehicle_location_log_probs(params, cfg, maps, scene) -> np.ndarray:
     return np.concatenate([np.asarray(one(params, *c)) for c in chunks])
 
 
-def drivable_split(params, cfg, maps, scene, drivable) -> dict:
-    """Mean share of the vehicle location mass on drivable bins and the location NLL per
-    on-drivable vehicle given the drivable area (nats, density per m^2)."""
-    logp = vehicle_location_log_probs(params, cfg, maps, scene)
-    keep, bins = vehicle_steps(scene, cfg)
-    mass, given = [], []
+def drivable_split(params, cfg, maps, scene, drivable, cls: int) -> dict:
+    """Mean share of the class's location mass on drivable bins, and its location NLL per
+    actor given that the actor is on (off) the drivable area, over the actors on (off) it
+    (nats, density per m^2; None where no actor is)."""
+    logp = location_log_probs(params, cfg, maps, scene, cls)
+    keep, bins = class_steps(scene, cfg, cls)
+    mass, on, off = [], [], []
     for s, t in zip(*np.nonzero(keep), strict=True):
         m = float(np.exp(logp[s, t])[drivable[s]].sum())
         mass.append(m)
+        nll = -logp[s, t, bins[s, t]] + np.log(cfg.bin_area)
         if drivable[s, bins[s, t]]:
-            given.append(-logp[s, t, bins[s, t]] + np.log(m) + np.log(cfg.bin_area))
+            on.append(nll + np.log(m))
+        else:
+            off.append(nll + np.log1p(-m))
     return {"mass_on_drivable": float(np.mean(mass)),
-            "location_nll_given_drivable": float(np.mean(given))}
+            "location_nll_given_drivable": float(np.mean(on)) if on else None,
+            "location_nll_given_off_drivable": float(np.mean(off)) if off else None}
 
 
-def drivable_uniform(scene, cfg, drivable) -> tuple[float, float]:
-    """(mean location NLL per vehicle under uniform-over-drivable, share of vehicles on it)."""
-    keep, bins = vehicle_steps(scene, cfg)
-    nll, on = [], []
+def map_only_references(scene, cfg, drivable, cls: int) -> dict:
+    """The class's actors against the drivable area: their share on it, quantiles of their
+    distance to it (m), and the location NLL per actor of the two map-only references,
+    uniform over the drivable bins (actors on them) and uniform over the others (actors off)."""
+    keep, bins = class_steps(scene, cfg, cls)
+    g = cfg.grid_size
+    rows, cols = np.divmod(np.arange(g * g), g)
+    on_nll, off_nll, dist = [], [], []
     for i in range(len(bins)):
         b = bins[i][keep[i]]
-        nll += [np.log(drivable[i].sum() * cfg.bin_area)] * len(b)
-        on += list(drivable[i][b])
-    return float(np.mean(nll)), float(np.mean(on))
+        on = drivable[i][b]
+        n_on = drivable[i].sum()
+        on_nll += [np.log(n_on * cfg.bin_area)] * int(on.sum())
+        off_nll += [np.log((g * g - n_on) * cfg.bin_area)] * int((~on).sum())
+        if n_on:
+            d2 = ((rows[b, None] - rows[None, drivable[i]]) ** 2
+                  + (cols[b, None] - cols[None, drivable[i]]) ** 2)
+            dist += list(np.sqrt(d2.min(axis=1)) * cfg.m_per_px)
+    q = (10, 25, 50, 75, 90)
+    return {"actors": int(keep.sum()),
+            "share_on_drivable": len(on_nll) / max(len(on_nll) + len(off_nll), 1),
+            f"distance_to_drivable_m_quantiles_{'_'.join(map(str, q))}":
+                [round(float(x), 2) for x in np.percentile(dist, q)] if dist else None,
+            "uniform_over_drivable_nll_given_drivable":
+                float(np.mean(on_nll)) if on_nll else None,
+            "uniform_over_off_drivable_nll_given_off_drivable":
+                float(np.mean(off_nll)) if off_nll else None}
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--data", required=True)
     p.add_argument("--every", type=int, default=1, help="score every N-th scene")
+    p.add_argument("--cls", choices=CLASS_NAMES, default="vehicle", help="class to check")
     p.add_argument("workdirs", nargs="+")
     args = p.parse_args()
+    cls = CLASS_NAMES.index(args.cls)
     cache = load_cache(args.data)
     sub = subset(cache, np.arange(0, len(cache), args.every))
-    out = {"data": args.data, "scenes": len(sub)}
+    out = {"data": args.data, "scenes": len(sub), "class": args.cls}
     for w in args.workdirs:
         cfg, state = load_trained(w)
         drivable = drivable_masks(sub, cfg)
         maps, scene = cropped(sub, cfg)
         s = summarize_scores(score_cache(state.params, sub, cfg, progress=False))
-        out[w] = {"step": int(state.step), "location_nll_per_vehicle": s[
-            "location_nll_per_vehicle"], **drivable_split(state.params, cfg, maps, scene, drivable)}
-    nll, on = drivable_uniform(scene, cfg, drivable)
-    out["uniform_over_drivable"] = {"location_nll_per_vehicle": nll, "vehicles_on_drivable": on}
+        out[w] = {"step": int(state.step),
+                  f"location_nll_per_{args.cls}": s[f"location_nll_per_{args.cls}"],
+                  **drivable_split(state.params, cfg, maps, scene, drivable, cls)}
+    out["map_only"] = map_only_references(scene, cfg, drivable, cls)
     print(json.dumps(out, indent=1))
 
 
