@@ -127,8 +127,9 @@ def drivable_split(params, cfg, maps, scene, drivable, cls: int) -> dict:
 
 def map_only_references(scene, cfg, drivable, cls: int) -> dict:
     """The class's actors against the drivable area: their share on it, quantiles of their
-    distance to it (m), and the location NLL per actor of the two map-only references,
-    uniform over the drivable bins (actors on them) and uniform over the others (actors off)."""
+    distance to it (m, from their bin's centre to the nearest drivable bin's centre), and the
+    location NLL per actor of the two map-only references, uniform over the drivable bins
+    (actors on them) and uniform over the others (actors off)."""
     keep, bins = class_steps(scene, cfg, cls)
     g = cfg.grid_size
     rows, cols = np.divmod(np.arange(g * g), g)
