@@ -165,11 +165,19 @@ def case_config(args):
     )
 
 
+def case_calls(args, batch: int) -> int:
+    """Concurrent calls a scoring or sampling case runs its batch as (`--workers`, default one
+    per core on CPU), at most one per scene: what its row records as `workers`."""
+    from scenegen_jax.concurrency import default_workers
+
+    return min(default_workers() if args.workers is None else args.workers, batch)
+
+
 def run_case(args) -> dict:
     import jax
     from synthetic import synthetic_batch
 
-    from scenegen_jax.concurrency import concurrent_map, default_workers
+    from scenegen_jax.concurrency import concurrent_map
     from scenegen_jax.eval.nll import score_batch
     from scenegen_jax.train.step import compile_train_step, init_state
 
@@ -195,7 +203,7 @@ def run_case(args) -> dict:
         out["GFLOP"] = flops * args.batch / 1e9
     elif args.kind == "score":
         # As `score_cache` runs a batch: `workers` concurrent calls on equal parts of it.
-        workers = min(default_workers() if args.workers is None else args.workers, args.batch)
+        workers = case_calls(args, args.batch)
         if args.batch % workers:
             raise SystemExit(f"--batch {args.batch} is not a multiple of {workers} workers")
         batch = jax.device_put(synthetic_batch(cfg, args.batch, args.steps - 1, seed=1))
@@ -245,7 +253,6 @@ def sample_case(cfg, params, args) -> dict:
     import numpy as np
     from synthetic import synthetic_batch
 
-    from scenegen_jax.concurrency import default_workers
     from scenegen_jax.sampling.rollout import FULL, sample_scenes
     from scenegen_jax.scene import STOP
     from scenegen_jax.train.step import crop_batch
@@ -288,7 +295,7 @@ def sample_case(cfg, params, args) -> dict:
         loop_iterations=int(iterations.max()),
         scene_steps=int(iterations.sum()),
         parallel=args.parallel,
-        workers=min(default_workers() if args.workers is None else args.workers, b),
+        workers=case_calls(args, b),
         scenes_per_s=b / r["median_s"],
         per_scene_step_ms=1e3 * r["median_s"] / int(iterations.sum()),
         trained_model=bool(args.workdir),
@@ -380,7 +387,7 @@ def summarize(rows: list[dict]) -> dict:
         if not (o.get("ours") and o.get("config") == "paper" and o.get("median_s")):
             continue
         g, b = o["grid"], o["batch"]
-        n_calls = min(o.get("workers", 1), b)  # concurrent calls on parts of the batch
+        n_calls = o.get("workers", 1)  # concurrent calls on parts of the batch (case_calls)
         calls = f"_{n_calls}calls" if n_calls > 1 else ""
         for p in refs:
             mode = "bf16_cl" if p.get("bf16") else "fp32"
