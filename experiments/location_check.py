@@ -105,6 +105,11 @@ def location_log_probs(params, cfg, maps, scene, cls: int) -> np.ndarray:
     return np.concatenate([np.asarray(one(params, *c)) for c in chunks])
 
 
+def mean(x: list) -> float | None:
+    """Mean of a list of numbers, None for an empty one (no actor of that kind)."""
+    return float(np.mean(x)) if x else None
+
+
 def drivable_split(params, cfg, maps, scene, drivable, cls: int) -> dict:
     """Mean share of the class's location mass on drivable bins, and its location NLL per
     actor given that the actor is on (off) the drivable area, over the actors on (off) it
@@ -120,9 +125,9 @@ def drivable_split(params, cfg, maps, scene, drivable, cls: int) -> dict:
             on.append(nll + np.log(m))
         else:
             off.append(nll + np.log1p(-m))
-    return {"mass_on_drivable": float(np.mean(mass)),
-            "location_nll_given_drivable": float(np.mean(on)) if on else None,
-            "location_nll_given_off_drivable": float(np.mean(off)) if off else None}
+    return {"mass_on_drivable": mean(mass),
+            "location_nll_given_drivable": mean(on),
+            "location_nll_given_off_drivable": mean(off)}
 
 
 def map_only_references(scene, cfg, drivable, cls: int) -> dict:
@@ -133,7 +138,7 @@ def map_only_references(scene, cfg, drivable, cls: int) -> dict:
     keep, bins = class_steps(scene, cfg, cls)
     g = cfg.grid_size
     rows, cols = np.divmod(np.arange(g * g), g)
-    on_nll, off_nll, dist = [], [], []
+    on_nll, off_nll, dist = [], [], []  # one entry per actor
     for i in range(len(bins)):
         b = bins[i][keep[i]]
         on = drivable[i][b]
@@ -145,14 +150,13 @@ def map_only_references(scene, cfg, drivable, cls: int) -> dict:
                   + (cols[b, None] - cols[None, drivable[i]]) ** 2)
             dist += list(np.sqrt(d2.min(axis=1)) * cfg.m_per_px)
     q = (10, 25, 50, 75, 90)
+
     return {"actors": int(keep.sum()),
-            "share_on_drivable": len(on_nll) / max(len(on_nll) + len(off_nll), 1),
+            "share_on_drivable": mean([1.0] * len(on_nll) + [0.0] * len(off_nll)),
             f"distance_to_drivable_m_quantiles_{'_'.join(map(str, q))}":
                 [round(float(x), 2) for x in np.percentile(dist, q)] if dist else None,
-            "uniform_over_drivable_nll_given_drivable":
-                float(np.mean(on_nll)) if on_nll else None,
-            "uniform_over_off_drivable_nll_given_off_drivable":
-                float(np.mean(off_nll)) if off_nll else None}
+            "uniform_over_drivable_nll_given_drivable": mean(on_nll),
+            "uniform_over_off_drivable_nll_given_off_drivable": mean(off_nll)}
 
 
 def main() -> None:
