@@ -158,7 +158,7 @@ def case_config(args):
         grid_size=args.grid,
         m_per_px=80.0 / args.grid,
         max_actors=args.steps - 1,
-        bptt_window=args.steps,
+        bptt_window=args.window or args.steps,
         batch_size=args.batch,
         rotate_augment=False,
         **({} if args.remat is None else {"remat": args.remat == "on"}),
@@ -181,10 +181,17 @@ def run_case(args) -> dict:
     from scenegen_jax.eval.nll import score_batch
     from scenegen_jax.train.step import compile_train_step, init_state
 
+    import scenegen_jax.train.unroll as unroll
+
     cfg = case_config(args)
+    if args.step_loop:
+        compiled = args.step_loop == "compiled"
+        unroll.compiled_step_loop = lambda: compiled
     c_in = len(cfg.map_channels) + ACTOR_CHANNELS
     out = {"what": args.kind, "ours": True, "config": cfg.name, "grid": cfg.grid_size,
            "hidden": cfg.hidden, "batch": args.batch, "map_ch": len(cfg.map_channels)}
+    if args.kind != "sample":
+        out["step_loop"] = "compiled" if unroll.compiled_step_loop() else "unrolled"
     state = init_state(cfg)
     if args.kind == "train":
         cfg = cfg.replace(batch_size=args.batch)
@@ -198,7 +205,8 @@ def run_case(args) -> dict:
             holder["state"], stats = step(holder["state"], batch)
             return stats["loss"]
 
-        out.update(timed(fn, args.runs), steps=args.steps, remat=cfg.remat)
+        out.update(timed(fn, args.runs), steps=args.steps, window=cfg.bptt_window,
+                   remat=cfg.remat)
         flops = paper_flops(cfg.grid_size, args.steps, c_in, cfg.hidden)[1]
         out["GFLOP"] = flops * args.batch / 1e9
     elif args.kind == "score":
@@ -215,7 +223,8 @@ def run_case(args) -> dict:
         def fn():
             return list(concurrent_map(lambda b: score(state.params, b), parts, workers))
 
-        out.update(timed(fn, args.runs), steps=args.steps, workers=workers)
+        out.update(timed(fn, args.runs), steps=args.steps, window=cfg.bptt_window,
+                   workers=workers)
         out["scenes_per_s"] = args.batch / out["median_s"]
         flops = paper_flops(cfg.grid_size, args.steps, c_in, cfg.hidden)[0]
         out["GFLOP"] = flops * args.batch / 1e9
@@ -536,6 +545,11 @@ def main() -> None:
     c.add_argument("--config", default="paper", choices=("paper", "cpu"))
     c.add_argument("--grid", type=int, default=128)
     c.add_argument("--steps", type=int, default=25, help="T, generation steps (last = stop)")
+    c.add_argument("--window", type=int, help="train and score: BPTT window (default: T, one "
+                   "window; the paper preset's is 25)")
+    c.add_argument("--step-loop", choices=("compiled", "unrolled"),
+                   help="train and score: a window's steps as a compiled loop or unrolled "
+                   "(default: the backend's, `unroll.compiled_step_loop`)")
     c.add_argument("--batch", type=int, default=1)
     c.add_argument("--runs", type=int, default=5)
     c.add_argument("--parallel", type=int, help="sampling: scenes vmapped together "

@@ -4,14 +4,17 @@ Step t of a scene with n actors predicts actor t (t < n) or the stop token (t = 
 t > n are padding. Steps run in windows of `cfg.bptt_window`: the ConvLSTM state is carried
 from window to window with its gradient cut (truncated backprop through time).
 
-Steps are unrolled at trace time (Python loops): XLA:CPU runs convolution gradients inside
-while loops and conditionals 10-20x slower than at the top level (jax-ml/jax#12868). Windows
-run through `scan_windows`: a Python loop on CPU, a `lax.scan` (one window compiled) on
-accelerators. The train step takes each window's gradient right after that window
-(`unroll_terms_and_grads`), so it holds one window's activations. Every window always runs,
-so `cfg.max_actors` should fit the data (overflow is counted).
+On XLA:CPU steps are unrolled at trace time (Python loops): it runs convolution gradients
+inside while loops and conditionals 10-20x slower than at the top level (jax-ml/jax#12868).
+On accelerators a window's steps run as a `lax.scan` (`compiled_step_loop`): one step is
+compiled instead of a window's worth. Windows run through `scan_windows`: a Python loop on
+CPU, a `lax.scan` (one window compiled) on accelerators. The train step takes each window's
+gradient right after that window (`unroll_terms_and_grads`), so it holds one window's
+activations. Every window always runs, so `cfg.max_actors` should fit the data (overflow is
+counted).
 
-Inside a window (the fast path; measurements in bench/README.md):
+Inside a window (the fast path; measurements in bench/README.md; on CPU `_unrolled_steps`,
+elsewhere `_scanned_steps`, the same mathematics one step per loop iteration):
   * the map share of layer 1's input convolution is computed once per scene (`map_gates`),
     so its weight gradient is one convolution over the gradients summed over steps;
   * per step: the actor share of layer 1's input gates, updated by a convolution over the
@@ -169,8 +172,7 @@ class _Scenes(NamedTuple):
 def _scenes(params, cfg: Config, scene: Scene) -> _Scenes:
     net = SceneGenNet(cfg)
     b = scene.ego.cls.shape[0]
-    draw = jax.vmap(functools.partial(draw_actor, cfg=cfg))
-    raster0 = draw(
+    raster0 = _draw(cfg)(
         jnp.broadcast_to(empty_actor_raster(cfg), (b, *empty_actor_raster(cfg).shape)),
         scene.ego,
         jnp.ones((b,), bool),
@@ -189,23 +191,60 @@ def window_terms(params, map_gates, carry, start, scenes: _Scenes, cfg: Config,
     carried (ConvLSTM state, actor raster); returns (carry, terms name -> [B, W], zero at
     padding steps). The carry is an input like any other: callers cut its gradient. At a
     static start 0 (a scene's first window) the state is the zero state: its first step skips
-    the recurrent convolutions of those zeros (`SceneGenNet.recur`)."""
+    the recurrent convolutions of those zeros (`SceneGenNet.recur`). The steps run unrolled
+    on XLA:CPU and as a compiled loop elsewhere (`compiled_step_loop`)."""
     net = SceneGenNet(cfg)
-
-    def apply(method, *args):
-        return net.apply({"params": params}, *args, method=method)
-
-    def chunk_heads(params, h2, cls, bins):
-        f = net.apply({"params": params}, h2, method=SceneGenNet.features)
-        return step_heads(net, params, f, cls, bins)
-
-    remat_heads = recompute_in_backward(chunk_heads)
     state, raster = carry
     if isinstance(start, int) and start == 0:
         state = None
     b, w = map_gates.shape[0], cfg.bptt_window
-    draw = jax.vmap(functools.partial(draw_actor, cfg=cfg))
     win = jax.tree.map(lambda x: jax.lax.dynamic_slice_in_dim(x, start, w, axis=1), scenes.actors)
+    targets, is_stop, valid = _step_targets(win, scenes.n_actors, start + jnp.arange(w))
+    bins = bin_index(targets.position, cfg)  # [B, W]
+    steps = _scanned_steps if compiled_step_loop() else _unrolled_steps
+    heads, state, raster_end = steps(
+        net, params, map_gates, state, raster, win, targets.cls, bins, cfg
+    )
+    # The densities are cheap and small: one batched call over the window's steps.
+    flat = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1).reshape(w * b, *x.shape[2:]), targets)
+    terms = head_terms(
+        net, params, heads, flat, jnp.swapaxes(is_stop, 0, 1).reshape(-1), cfg, hard_negatives
+    )
+    terms = {k: jnp.swapaxes(v.reshape(w, b), 0, 1) * valid for k, v in terms.items()}
+    return (state, raster_end), terms
+
+
+def compiled_step_loop() -> bool:
+    """Whether a window's steps run as a compiled loop (everywhere but XLA:CPU, whose
+    convolution gradients inside loops are many times slower; module docstring). On an
+    accelerator the unrolled window compiled for minutes (bench/README.md)."""
+    return jax.default_backend() != "cpu"
+
+
+def _chunk_heads(net: SceneGenNet):
+    def chunk_heads(params, h2, cls, bins):
+        f = net.apply({"params": params}, h2, method=SceneGenNet.features)
+        return step_heads(net, params, f, cls, bins)
+
+    return chunk_heads
+
+
+def _draw(cfg: Config):
+    return jax.vmap(functools.partial(draw_actor, cfg=cfg))
+
+
+def _unrolled_steps(net, params, map_gates, state, raster, win: Actors, cls, bins, cfg):
+    """The window's steps unrolled at trace time, backbone and heads on chunks of steps
+    (`head_chunk`), with `cfg.remat` each chunk recomputed in the backward pass one chunk
+    late. Returns (heads [W * B, ...] step-major, state, raster after the window)."""
+
+    def apply(method, *args):
+        return net.apply({"params": params}, *args, method=method)
+
+    chunk_heads = _chunk_heads(net)
+    remat_heads = recompute_in_backward(chunk_heads)
+    b, w = map_gates.shape[0], cfg.bptt_window
+    draw = _draw(cfg)
 
     def add(r, a):  # the raster before actor j, then actor j drawn
         return draw(r, a, jnp.zeros((b,), bool)), r
@@ -213,16 +252,12 @@ def window_terms(params, map_gates, carry, start, scenes: _Scenes, cfg: Config,
     raster_end, rasters = jax.lax.scan(
         add, raster, jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), win)
     )
-    t = start + jnp.arange(w)
-    targets, is_stop, valid = _step_targets(win, scenes.n_actors, t)
-    bins = bin_index(targets.position, cfg)  # [B, W]
     chunk = head_chunk(cfg, b)
     heads, pending = [], []
     actor_gates = apply(SceneGenNet.actor_gates, rasters[0])
     for c0 in range(0, w, chunk):
-        steps = range(c0, min(c0 + chunk, w))
         h2s = []
-        for j in steps:
+        for j in range(c0, min(c0 + chunk, w)):
             if j > 0:
                 actor_gates = apply(
                     SceneGenNet.next_actor_gates,
@@ -230,9 +265,9 @@ def window_terms(params, map_gates, carry, start, scenes: _Scenes, cfg: Config,
                 )
             state, h2 = apply(SceneGenNet.recur, state, actor_gates + map_gates)
             h2s.append(h2)
-        cls = jnp.swapaxes(targets.cls[:, c0 : c0 + chunk], 0, 1).reshape(-1)
+        at_cls = jnp.swapaxes(cls[:, c0 : c0 + chunk], 0, 1).reshape(-1)
         at = jnp.swapaxes(bins[:, c0 : c0 + chunk], 0, 1).reshape(-1)
-        args = (jnp.concatenate(h2s), cls, at)  # [n * B, ...] step-major
+        args = (jnp.concatenate(h2s), at_cls, at)  # [n * B, ...] step-major
         if not cfg.remat:
             heads.append(chunk_heads(params, *args))
             continue
@@ -245,14 +280,48 @@ def window_terms(params, map_gates, carry, start, scenes: _Scenes, cfg: Config,
     for args in pending:
         out, state = remat_heads(params, *args, state)
         heads.append(out)
-    # The densities are cheap and small: one batched call over the window's steps.
-    heads = jax.tree.map(lambda *x: jnp.concatenate(x), *heads)  # [W * B, ...] step-major
-    flat = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1).reshape(w * b, *x.shape[2:]), targets)
-    terms = head_terms(
-        net, params, heads, flat, jnp.swapaxes(is_stop, 0, 1).reshape(-1), cfg, hard_negatives
+    heads = jax.tree.map(lambda *x: jnp.concatenate(x), *heads)
+    return heads, state, raster_end
+
+
+def _scanned_steps(net, params, map_gates, state, raster, win: Actors, cls, bins, cfg):
+    """`_unrolled_steps` as a `lax.scan` over the window's steps 1..W-1 (step 0, which may
+    start from the zero state, runs before it): one step is compiled, whatever the window.
+    Each iteration draws the previous step's actor, updates the actor gates locally, steps
+    the ConvLSTM and runs the backbone and heads of that one step (recomputed in the
+    backward pass with `cfg.remat`: `jax.checkpoint` inside a loop body holds)."""
+
+    def apply(method, *args):
+        return net.apply({"params": params}, *args, method=method)
+
+    heads_of = _chunk_heads(net)
+    if cfg.remat:
+        heads_of = jax.checkpoint(heads_of, prevent_cse=False)
+    b = map_gates.shape[0]
+    draw = _draw(cfg)
+    gates = apply(SceneGenNet.actor_gates, raster)
+    state, h2 = apply(SceneGenNet.recur, state, gates + map_gates)
+    first = heads_of(params, h2, cls[:, 0], bins[:, 0])
+
+    def step(carry, x):
+        state, gates, before = carry
+        drawn, at_cls, at = x  # the previous step's actor; this step's target class and bin
+        after = draw(before, drawn, jnp.zeros((b,), bool))
+        gates = apply(SceneGenNet.next_actor_gates, gates, before, after, drawn.position)
+        state, h2 = apply(SceneGenNet.recur, state, gates + map_gates)
+        return (state, gates, after), heads_of(params, h2, at_cls, at)
+
+    steps_major = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), (win, cls, bins))
+    drawn = jax.tree.map(lambda x: x[:-1], steps_major[0])
+    (state, _, raster), rest = jax.lax.scan(
+        step, (state, gates, raster), (drawn, steps_major[1][1:], steps_major[2][1:])
     )
-    terms = {k: jnp.swapaxes(v.reshape(w, b), 0, 1) * valid for k, v in terms.items()}
-    return (state, raster_end), terms
+    last = jax.tree.map(lambda x: x[-1], steps_major[0])
+    raster_end = draw(raster, last, jnp.zeros((b,), bool))
+    heads = jax.tree.map(
+        lambda f, r: jnp.concatenate([f, r.reshape(-1, *r.shape[2:])]), first, rest
+    )
+    return heads, state, raster_end
 
 
 def _join_windows(terms: dict, scenes: _Scenes):
