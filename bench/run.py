@@ -190,8 +190,10 @@ def run_case(args) -> dict:
     c_in = len(cfg.map_channels) + ACTOR_CHANNELS
     out = {"what": args.kind, "ours": True, "config": cfg.name, "grid": cfg.grid_size,
            "hidden": cfg.hidden, "batch": args.batch, "map_ch": len(cfg.map_channels)}
-    if args.kind != "sample":
-        out["step_loop"] = "compiled" if unroll.compiled_step_loop() else "unrolled"
+    if args.kind != "sample" and unroll.compiled_step_loop():
+        out.update(step_loop="compiled", step_loop_unroll=unroll.STEP_LOOP_UNROLL)
+    elif args.kind != "sample":
+        out["step_loop"] = "unrolled"
     state = init_state(cfg)
     if args.kind == "train":
         cfg = cfg.replace(batch_size=args.batch)
@@ -398,6 +400,8 @@ def summarize(rows: list[dict]) -> dict:
         g, b = o["grid"], o["batch"]
         n_calls = o.get("workers", 1)  # concurrent calls on parts of the batch (case_calls)
         calls = f"_{n_calls}calls" if n_calls > 1 else ""
+        if o.get("backend", "cpu") != "cpu" and o.get("step_loop") == "unrolled":
+            calls += "_unrolled"  # not the accelerator default (`--step-loop unrolled`)
         for p in refs:
             mode = "bf16_cl" if p.get("bf16") else "fp32"
             if p.get("grid") != g:
@@ -475,7 +479,8 @@ def cpu_peer(args) -> list[dict]:
 def accel_ours(args) -> list[dict]:
     """The paper preset on an accelerator: its own grid (320, T 25) and 128 at B 1 (the paper
     trains with B 1 per GPU; B 16 on one 80 GB GPU runs out of memory, as the reference's
-    does), scoring also at B 16."""
+    does), scoring also at B 16; the whole preset's train step (128 actors: 6 windows of
+    25); and the train step and scoring with the window's steps unrolled, to compare."""
     r, big, rows = args.runs, max(2, args.runs // 2), []
     for grid in (320, 128):
         for remat in ("on", "off"):
@@ -484,6 +489,9 @@ def accel_ours(args) -> list[dict]:
         for b in (1, 32):
             rows += ours("sample", grid=grid, batch=b, runs=big)
     rows += ours("score", grid=320, steps=25, batch=16, runs=big)
+    rows += ours("train", grid=320, steps=129, window=25, batch=1, runs=big)
+    for kind in ("train", "score"):
+        rows += ours(kind, grid=320, steps=25, batch=1, runs=r, step_loop="unrolled")
     return rows
 
 

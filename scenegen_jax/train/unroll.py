@@ -214,6 +214,10 @@ def window_terms(params, map_gates, carry, start, scenes: _Scenes, cfg: Config,
     return (state, raster_end), terms
 
 
+# Steps per iteration of the compiled step loop (`lax.scan`'s unroll).
+STEP_LOOP_UNROLL = 4
+
+
 def compiled_step_loop() -> bool:
     """Whether a window's steps run as a compiled loop (everywhere but XLA:CPU, whose
     convolution gradients inside loops are many times slower; module docstring). On an
@@ -314,7 +318,8 @@ def _scanned_steps(net, params, map_gates, state, raster, win: Actors, cls, bins
     steps_major = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), (win, cls, bins))
     drawn = jax.tree.map(lambda x: x[:-1], steps_major[0])
     (state, _, raster), rest = jax.lax.scan(
-        step, (state, gates, raster), (drawn, steps_major[1][1:], steps_major[2][1:])
+        step, (state, gates, raster), (drawn, steps_major[1][1:], steps_major[2][1:]),
+        unroll=STEP_LOOP_UNROLL,
     )
     last = jax.tree.map(lambda x: x[-1], steps_major[0])
     raster_end = draw(raster, last, jnp.zeros((b,), bool))
