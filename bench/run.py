@@ -177,11 +177,10 @@ def run_case(args) -> dict:
     import jax
     from synthetic import synthetic_batch
 
+    import scenegen_jax.train.unroll as unroll
     from scenegen_jax.concurrency import concurrent_map
     from scenegen_jax.eval.nll import score_batch
     from scenegen_jax.train.step import compile_train_step, init_state
-
-    import scenegen_jax.train.unroll as unroll
 
     cfg = case_config(args)
     if args.step_loop:
