@@ -110,13 +110,19 @@ def recompute_in_backward(fn):
     return g
 
 
-def step_heads(net: SceneGenNet, params, f, cls, bins):
-    """The convolutional heads of one step: features f [M, H, W, h] -> (class logits [M, 4],
-    location logits of class cls [M, H*W], features at the target bins [M, h])."""
+def _bound(net: SceneGenNet, params):
+    """net's methods with params bound: apply(method, *args)."""
 
     def apply(method, *args):
         return net.apply({"params": params}, *args, method=method)
 
+    return apply
+
+
+def step_heads(net: SceneGenNet, params, f, cls, bins):
+    """The convolutional heads of one step: features f [M, H, W, h] -> (class logits [M, 4],
+    location logits of class cls [M, H*W], features at the target bins [M, h])."""
+    apply = _bound(net, params)
     feat = f.reshape(f.shape[0], -1, f.shape[-1])[jnp.arange(f.shape[0]), bins]
     location = apply(SceneGenNet.location_logits, f, cls, f.shape[0] == 1)
     return apply(SceneGenNet.class_logits, f), location, feat
@@ -244,9 +250,7 @@ def _unrolled_steps(net, params, map_gates, state, raster, win: Actors, cls, bin
     (`head_chunk`), with `cfg.remat` each chunk recomputed in the backward pass one chunk
     late. Returns (heads [W * B, ...] step-major, state, raster after the window)."""
 
-    def apply(method, *args):
-        return net.apply({"params": params}, *args, method=method)
-
+    apply = _bound(net, params)
     chunk_heads = _chunk_heads(net)
     remat_heads = recompute_in_backward(chunk_heads)
     b, w = map_gates.shape[0], cfg.bptt_window
@@ -298,9 +302,7 @@ def _scanned_steps(net, params, map_gates, state, raster, win: Actors, cls, bins
     the ConvLSTM and runs the backbone and heads of that one step (recomputed in the
     backward pass with `cfg.remat`: `jax.checkpoint` inside a loop body holds)."""
 
-    def apply(method, *args):
-        return net.apply({"params": params}, *args, method=method)
-
+    apply = _bound(net, params)
     heads_of = _chunk_heads(net)
     if cfg.remat:
         heads_of = jax.checkpoint(heads_of, prevent_cse=False)
@@ -415,9 +417,7 @@ def reference_step_terms(params, cfg: Config, maps, scene: Scene, hard_negatives
     ConvLSTM step on the concatenated input (map ++ actors ++ h1); for tests only."""
     net = SceneGenNet(cfg)
 
-    def apply(method, *args):
-        return net.apply({"params": params}, *args, method=method)
-
+    apply = _bound(net, params)
     b = maps.shape[0]
     w_in = jnp.concatenate(
         ([params["lstm1_map"]] if cfg.map_channels else [])
