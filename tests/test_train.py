@@ -17,6 +17,7 @@ from small import CFG, two_small_scenes
 
 from scenegen_jax.model.network import (
     SceneGenNet,
+    group_norm,
     init_params,
     lstm_gates,
     lstm_gates_reference,
@@ -182,6 +183,37 @@ def test_lstm_cell_gradient_equals_autodiff():
     ref = jax.grad(lambda g, c: loss(lstm_gates_reference, g, c), argnums=(0, 1))(gates, c)
     for a, b in zip(fast, ref, strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5)
+
+
+def test_group_norm_matches_flax():
+    """Our GroupNorm (statistics reduced over H, W first) against flax.linen.GroupNorm, values
+    and gradients, with per-channel and per-example scale and bias (the location heads)."""
+    import flax.linen as nn
+
+    kx, ks, kb, kw = jax.random.split(jax.random.key(6), 4)
+    x = 3.0 + 2.0 * jax.random.normal(kx, (3, 9, 7, 12))  # a mean far from 0
+    scale, bias = jax.random.normal(ks, (3, 12)), jax.random.normal(kb, (3, 12))
+    w = jax.random.normal(kw, (1, 9, 7, 12))
+    flax_gn = nn.GroupNorm(num_groups=4, epsilon=1e-5)
+
+    def theirs(x, s, b):
+        return flax_gn.apply({"params": {"scale": s, "bias": b}}, x)
+
+    def ours(x, s, b):
+        return group_norm(x, 4, s, b)
+
+    def grads(fn, *args):
+        return jax.grad(lambda *a: jnp.sum(w * jnp.sin(fn(*a))), argnums=(0, 1, 2))(*args)
+
+    for i in range(3):  # per-channel parameters, one example at a time
+        args = (x[i : i + 1], scale[i], bias[i])
+        np.testing.assert_allclose(ours(*args), theirs(*args), rtol=1e-5, atol=1e-5)
+        for g_ours, g_theirs in zip(grads(ours, *args), grads(theirs, *args), strict=True):
+            np.testing.assert_allclose(g_ours, g_theirs, rtol=1e-4, atol=1e-4)
+    per_example = group_norm(x, 4, scale[:, None, None, :], bias[:, None, None, :])
+    for i in range(3):
+        np.testing.assert_allclose(per_example[i : i + 1], theirs(x[i : i + 1], scale[i], bias[i]),
+                                   rtol=1e-5, atol=1e-5)
 
 
 def test_truncation_cuts_gradients_between_windows(tiny_train_cache, small_scenes):
