@@ -180,6 +180,7 @@ def run_case(args) -> dict:
     import scenegen_jax.train.unroll as unroll
     from scenegen_jax.concurrency import concurrent_map
     from scenegen_jax.eval.nll import score_batch
+    from scenegen_jax.model.network import scoring_compiler_options
     from scenegen_jax.train.step import compile_train_step, init_state
 
     cfg = case_config(args)
@@ -219,7 +220,8 @@ def run_case(args) -> dict:
         part = args.batch // workers
         parts = [jax.tree.map(lambda x, i=i: x[i * part:(i + 1) * part], batch)
                  for i in range(workers)]
-        score = jax.jit(lambda p, b: score_batch(p, b, cfg)["class"])
+        score = jax.jit(lambda p, b: score_batch(p, b, cfg)["class"],
+                        compiler_options=scoring_compiler_options())
 
         def fn():
             return list(concurrent_map(lambda b: score(state.params, b), parts, workers))

@@ -16,6 +16,7 @@ from scenegen_jax.concurrency import concurrent_map, default_workers
 from scenegen_jax.config import Config
 from scenegen_jax.data.cache import Cache
 from scenegen_jax.distributions import TERMS
+from scenegen_jax.model.network import scoring_compiler_options
 from scenegen_jax.scene import CLASS_NAMES, pixel_centers
 from scenegen_jax.train.data import gather_batch, to_device
 from scenegen_jax.train.step import Batch, crop_batch, make_mesh
@@ -39,6 +40,7 @@ def _jitted_scorer(cfg: Config, mesh):
         lambda p, b: score_batch(p, b, cfg),
         in_shardings=(NamedSharding(mesh, P()), data),
         out_shardings=data,
+        compiler_options=scoring_compiler_options(),
     )
 
 
