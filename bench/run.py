@@ -512,11 +512,29 @@ def accel_peer(args) -> list[dict]:
     return rows
 
 
+def cpu_model() -> str:
+    """The CPU's model name, family and model (/proc/cpuinfo): timings differ 2x between the
+    machines this runs on."""
+    fields: dict[str, str] = {}
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                key, _, value = line.partition(":")
+                fields.setdefault(key.strip(), value.strip())
+    except OSError:
+        pass
+    name = fields.get("model name") or platform.processor() or platform.machine()
+    if "cpu family" in fields and "model" in fields:
+        name += f" (family {fields['cpu family']}, model {fields['model']})"
+    return name
+
+
 def main_all(args) -> None:
     import jax
 
     rows: list[dict] = [{
         "what": "env", "machine": platform.processor() or platform.machine(),
+        "cpu_model": cpu_model(),
         "cpus": os.cpu_count(), "python": platform.python_version(), "jax": jax.__version__,
         **device_fields(), "date": time.strftime("%Y-%m-%d %H:%M:%S"),
     }]
