@@ -450,6 +450,29 @@ def test_location_sampler_respects_order_and_density():
     assert min(stats.kstest(f, "uniform").pvalue for f in (frac_x, frac_y)) > 0.01
 
 
+def test_bin_sampler_draws_the_categorical():
+    """Row then column within it: the exact categorical, excluded bins (-inf) never drawn,
+    a fully excluded row included."""
+    rng = np.random.default_rng(9)
+    width = 8
+    log_probs = rng.normal(0, 1.5, 6 * width)
+    log_probs[[3, 17, 40]] = -np.inf
+    log_probs[16:24] = -np.inf  # row 2
+    log_probs = sps.log_softmax(log_probs)
+    fn = jax.jit(jax.vmap(lambda k: D.sample_bins(k, jnp.asarray(log_probs, jnp.float32), 4,
+                                                  width)))
+    bins = np.asarray(fn(jax.random.split(jax.random.key(6), 10000))).ravel()
+    assert bins.dtype == np.int32 and bins.shape == (40000,)
+    counts = np.bincount(bins, minlength=log_probs.size)
+    allowed = np.isfinite(log_probs)
+    assert counts[~allowed].sum() == 0
+    want = np.exp(log_probs[allowed]) * bins.size
+    assert stats.chisquare(counts[allowed], want).pvalue > 0.01
+    lp = log_probs[allowed]
+    wrong = np.exp(sps.log_softmax(lp + 0.15 * (lp == lp.max())))  # the likeliest bin a bit more
+    assert stats.chisquare(counts[allowed], wrong * bins.size).pvalue < 1e-4
+
+
 def test_ordering_mask_with_nothing_left_is_finite():
     logits = jnp.full((N_BINS,), 1e4).at[3].set(-1e4)
     mask = D.ordering_mask(N_BINS, N_BINS)

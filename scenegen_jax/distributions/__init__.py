@@ -20,6 +20,7 @@ from scenegen_jax.distributions.categorical import (
     masked_location_log_prob,
     masked_log_softmax,
     ordering_mask,
+    sample_bins,
     sample_class,
     sample_location,
 )
@@ -79,6 +80,7 @@ __all__ = [
     "sample_box",
     "sample_class",
     "sample_heading",
+    "sample_bins",
     "sample_location",
     "sample_velocity",
     "split_box",

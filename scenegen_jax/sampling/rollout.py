@@ -67,6 +67,7 @@ from scenegen_jax.distributions import (
     is_relative_direction,
     masked_log_softmax,
     ordering_mask,
+    sample_bins,
     sample_box,
     sample_class,
     sample_heading,
@@ -327,7 +328,7 @@ def _candidates(key, params, model: Model, f, cls, log_probs, cfg: Config, propo
     """`count` i.i.d. candidate actors of class `cls`: bins from `log_probs` [H*W] (-inf
     outside the allowed set), positions uniform in the bins, best-of-M attributes."""
     k_bin, k_pos, k_attr = jax.random.split(key, 3)
-    bins = jax.random.categorical(k_bin, log_probs, shape=(count,)).astype(jnp.int32)
+    bins = sample_bins(k_bin, log_probs, count, cfg.grid_size)
     u = jax.random.uniform(k_pos, (count, 2), minval=_EDGE, maxval=1.0 - _EDGE)
     position = bin_center(bins, cfg) + (u - 0.5) * cfg.m_per_px
     feat = f[0].reshape(-1, f.shape[-1])[bins]  # [R, hidden]
