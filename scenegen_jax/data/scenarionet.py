@@ -34,6 +34,7 @@ import numpy as np
 from scenegen_jax import __version__
 from scenegen_jax.data.frame import Frame
 from scenegen_jax.data.safe_pickle import dump_pickle, load_pickle
+from scenegen_jax.data.surface import offset_centerline
 from scenegen_jax.data.vector_map import Lane, VectorMap, resample_polyline, rotation_matrix
 from scenegen_jax.scene import BICYCLIST, NUM_CLASSES, PEDESTRIAN, VEHICLE
 
@@ -144,21 +145,6 @@ def _canonical_int(key: Any) -> int | None:
 def _dedupe(points: np.ndarray) -> np.ndarray:
     keep = np.concatenate([[True], np.linalg.norm(np.diff(points, axis=0), axis=1) > 1e-9])
     return points[keep]
-
-
-def offset_centerline(
-    center: np.ndarray, half_width_left: np.ndarray, half_width_right: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Left and right boundaries [P, 2] at the given per-point distances (m) from a centreline.
-
-    Args:
-      center: [P, 2] centreline, P >= 2, no repeated consecutive points.
-      half_width_left, half_width_right: [P] distances to the left / right boundary, m.
-    """
-    tangent = np.gradient(center, axis=0)
-    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
-    normal = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)  # left of travel (y left)
-    return center + normal * half_width_left[:, None], center - normal * half_width_right[:, None]
 
 
 def _lane_half_widths(feature: Mapping, n: int, source: str, field: str) -> tuple[np.ndarray, ...]:

@@ -1,4 +1,11 @@
-"""A vector HD map (host side, numpy): lanes, crosswalks and drivable areas in one frame."""
+"""A vector HD map (host side, numpy): lanes, lines, crosswalks and drivable areas in one frame.
+
+Argoverse 2 gives lanes with both boundaries and their painted marks, and drivable-area
+polygons. Waymo and nuScenes give lane centrelines, painted lines and road edges that belong
+to no lane, and no drivable-area polygon; their readers keep the lines as `RoadLine`s and build
+lane outlines and the drivable area with `scenegen_jax.data.surface`, so that every source
+fills the same raster channels with the same meaning.
+"""
 
 from __future__ import annotations
 
@@ -7,6 +14,7 @@ import dataclasses
 import numpy as np
 
 LANE_TYPES = ("VEHICLE", "BIKE", "BUS")
+ROAD_EDGE = "ROAD_EDGE"  # the mark of a kerb or road edge: never crossable
 
 
 def is_crossable(mark_type: str) -> bool | None:
@@ -14,7 +22,7 @@ def is_crossable(mark_type: str) -> bool | None:
     mark = mark_type.upper()
     if mark in ("NONE", "UNKNOWN", ""):
         return None
-    return "DASH" in mark
+    return "DASH" in mark or "BROKEN" in mark
 
 
 @dataclasses.dataclass(frozen=True)
@@ -53,12 +61,27 @@ class Lane:
 
 
 @dataclasses.dataclass(frozen=True)
+class RoadLine:
+    """A painted line or a road edge that belongs to no single lane.
+
+    Attributes:
+      points: [P, 2] polyline, m.
+      mark: Argoverse 2 mark name ("SOLID_WHITE", "DASHED_YELLOW", ...), `ROAD_EDGE` for a
+        kerb or road edge, or "UNKNOWN" for a painted line of unknown type.
+    """
+
+    points: np.ndarray
+    mark: str
+
+
+@dataclasses.dataclass(frozen=True)
 class VectorMap:
-    """Lanes, crosswalk polygons and drivable-area polygons (all [P, 2] arrays, m)."""
+    """Lanes, standalone lines, crosswalk and drivable-area polygons (all [P, 2] arrays, m)."""
 
     lanes: tuple[Lane, ...] = ()
     crosswalks: tuple[np.ndarray, ...] = ()
     drivable_areas: tuple[np.ndarray, ...] = ()
+    lines: tuple[RoadLine, ...] = ()
 
     def transform(self, rotation: np.ndarray, translation: np.ndarray) -> VectorMap:
         """Applies p -> rotation @ p + translation to every point."""
@@ -75,6 +98,7 @@ class VectorMap:
             lanes=lanes,
             crosswalks=tuple(f(p) for p in self.crosswalks),
             drivable_areas=tuple(f(p) for p in self.drivable_areas),
+            lines=tuple(dataclasses.replace(line, points=f(line.points)) for line in self.lines),
         )
 
     def crop(self, center: np.ndarray, radius: float) -> VectorMap:
@@ -89,6 +113,7 @@ class VectorMap:
             lanes=tuple(lane for lane in self.lanes if near(lane.polygon)),
             crosswalks=tuple(p for p in self.crosswalks if near(p)),
             drivable_areas=tuple(p for p in self.drivable_areas if near(p)),
+            lines=tuple(line for line in self.lines if near(line.points)),
         )
 
 

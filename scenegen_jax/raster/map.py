@@ -72,13 +72,15 @@ def rasterize_map(vmap: VectorMap, size: int, m_per_px: float) -> np.ndarray:
     lines = [shapely.LineString(lane.centerline).buffer(line_buffer) for lane in vmap.lanes]
     channels["lane_centerline"][hit_points(lines)[1]] = 1.0
     crossable, uncrossable = [], []
-    for lane in vmap.lanes:
-        for line, mark in ((lane.left, lane.left_mark), (lane.right, lane.right_mark)):
-            kind = is_crossable(mark)
-            if kind is not None:
-                (crossable if kind else uncrossable).append(
-                    shapely.LineString(line).buffer(line_buffer)
-                )
+    marked = [(lane.left, lane.left_mark) for lane in vmap.lanes]
+    marked += [(lane.right, lane.right_mark) for lane in vmap.lanes]
+    marked += [(line.points, line.mark) for line in vmap.lines if len(line.points) >= 2]
+    for line, mark in marked:
+        kind = is_crossable(mark)
+        if kind is not None:
+            (crossable if kind else uncrossable).append(
+                shapely.LineString(line).buffer(line_buffer)
+            )
     channels["lane_boundary_crossable"][hit_points(crossable)[1]] = 1.0
     channels["lane_boundary_uncrossable"][hit_points(uncrossable)[1]] = 1.0
 
