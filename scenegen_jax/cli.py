@@ -89,6 +89,7 @@ def cmd_train(args) -> None:
         keep=args.keep,
         max_seconds=args.minutes * 60 if args.minutes else None,
         init_from=args.init_from,
+        weights=args.weights,
     )
     print(json.dumps({"workdir": args.workdir, "step": int(state.step)}))
 
@@ -98,16 +99,21 @@ def cmd_score(args) -> None:
 
     import numpy as np
 
-    from scenegen_jax.data.cache import load_cache
     from scenegen_jax.distributions import TERMS
-    from scenegen_jax.eval.nll import actor_steps, score_cache, summarize_scores
+    from scenegen_jax.eval.nll import (
+        actor_steps,
+        score_cache,
+        source_slices,
+        summarize_by_source,
+        summarize_scores,
+    )
+    from scenegen_jax.train.data import load_union
     from scenegen_jax.train.loop import load_trained
 
     if args.top_k < 0 or (args.top_k and not args.render):
         raise SystemExit("--top-k K needs K >= 0 and --render DIR")
     cfg, state = load_trained(args.workdir, args.step)
-    cache = load_cache(args.data)
-    cache.check_config(cfg)
+    cache = load_union(args.data, cfg)  # every --data cache, its scenes one after another
     scores = score_cache(state.params, cache, cfg, batch_size=args.batch_size)
     total = sum(scores[k] for k in TERMS)
     actor = actor_steps(scores)
@@ -123,26 +129,34 @@ def cmd_score(args) -> None:
                 "scene_nll",
                 "nll_per_actor",
                 *[f"{k}_nll" for k in TERMS],
+                "source",
             ]
         )
-        for i, sid in enumerate(cache.scene_ids):
-            per_actor = total[i].sum() / max(n_actors[i], 1)
-            writer.writerow(
-                [
-                    i,
-                    sid,
-                    int(n_actors[i]),
-                    f"{total[i].sum():.4f}",
-                    f"{per_actor:.4f}",
-                    *[f"{scores[k][i].sum():.4f}" for k in TERMS],
-                ]
-            )
+        # index: the scene's index in its own cache; source: that cache's label.
+        for source, part in source_slices(cache):
+            for i in range(part.start, part.stop):
+                per_actor = total[i].sum() / max(n_actors[i], 1)
+                writer.writerow(
+                    [
+                        i - part.start,
+                        cache.scene_ids[i],
+                        int(n_actors[i]),
+                        f"{total[i].sum():.4f}",
+                        f"{per_actor:.4f}",
+                        *[f"{scores[k][i].sum():.4f}" for k in TERMS],
+                        source,
+                    ]
+                )
     summary = summarize_scores(scores)
+    summary["by_source"] = summarize_by_source(scores, cache)
     if args.top_k:
         summary["rendered"] = _render_worst(scores, cache, cfg, args.top_k, args.render)
     print(json.dumps({"out": args.out, **summary}))
     if args.actors_out:
-        np.savez(args.actors_out, **scores)
+        parts = source_slices(cache)  # per scene: its source's number in source_labels
+        which = np.concatenate([np.full(p.stop - p.start, n) for n, (_, p) in enumerate(parts)])
+        np.savez(args.actors_out, **scores, source=which,
+                 source_labels=np.array([name for name, _ in parts]))
 
 
 def _render_worst(scores, cache, cfg, k: int, out_dir: str) -> list[str]:
@@ -360,15 +374,13 @@ def cmd_sample(args) -> None:
 
 
 def cmd_evaluate(args) -> None:
-    from scenegen_jax.data.cache import load_cache
     from scenegen_jax.eval.evaluate import evaluate, format_table
+    from scenegen_jax.train.data import load_union
     from scenegen_jax.train.loop import load_trained
 
     cfg, state = load_trained(args.workdir, args.step)
-    cache = load_cache(args.data)
-    train_cache = load_cache(args.train_data)
-    for c in (cache, train_cache):
-        c.check_config(cfg)
+    cache = load_union(args.data, cfg)
+    train_cache = load_union(args.train_data, cfg)
     report = evaluate(state.params, cfg, cache, train_cache, args.num, args.seed)
     report["step"] = int(state.step)
     report["command"] = " ".join(["scenegen", *sys.argv[1:]])
@@ -419,8 +431,14 @@ def build_parser() -> argparse.ArgumentParser:
     sp.set_defaults(func=cmd_render)
     sp = sub.add_parser("train", help="train a model on a cache")
     sp.add_argument("--config", default="tiny", choices=sorted(PRESETS))
-    sp.add_argument("--data", required=True, help="cache directory from `prepare`")
-    sp.add_argument("--workdir", required=True, help="checkpoints, config.json, metrics.jsonl")
+    sp.add_argument("--data", required=True, nargs="+", metavar="CACHE",
+                    help="cache directories from `prepare` (same config, any sources), "
+                    "trained on together")
+    sp.add_argument("--weights", type=float, nargs="+", metavar="W",
+                    help="one per --data cache: a scene comes from cache i with probability "
+                    "W_i / sum(W) (default: the scene counts, uniform over all scenes)")
+    sp.add_argument("--workdir", required=True,
+                    help="checkpoints, config.json, data.json, metrics.jsonl")
     sp.add_argument("--steps", type=int, default=1000, help="total steps (resumes if fewer done)")
     sp.add_argument("--save-every", type=int, default=100)
     sp.add_argument("--log-every", type=int, default=10)
@@ -443,8 +461,9 @@ def build_parser() -> argparse.ArgumentParser:
     sp = sub.add_parser("score", help="NLL of real scenes under a trained model")
     sp.add_argument("--workdir", required=True)
     sp.add_argument("--step", type=int, help="checkpoint step to load (default: the latest)")
-    sp.add_argument("--data", required=True, help="cache directory to score")
-    sp.add_argument("--out", required=True, help="CSV, one row per scene")
+    sp.add_argument("--data", required=True, nargs="+", metavar="CACHE",
+                    help="cache directories to score (summary also per source)")
+    sp.add_argument("--out", required=True, help="CSV, one row per scene (with its source)")
     sp.add_argument("--batch-size", type=int, default=8,
                     help="scenes per batch, split into concurrent calls (one per core on CPU)")
     sp.add_argument("--actors-out", help="optional .npz of per-step NLL terms")
@@ -481,8 +500,10 @@ def build_parser() -> argparse.ArgumentParser:
     sp = sub.add_parser("evaluate", help="NLL and MMD of SceneGen and baselines (Table 1)")
     sp.add_argument("--workdir", required=True)
     sp.add_argument("--step", type=int, help="checkpoint step to load (default: the latest)")
-    sp.add_argument("--data", required=True, help="cache of the evaluation split")
-    sp.add_argument("--train-data", required=True, help="training cache (Procedural's KDE)")
+    sp.add_argument("--data", required=True, nargs="+", metavar="CACHE",
+                    help="caches of the evaluation split (NLL also per source)")
+    sp.add_argument("--train-data", required=True, nargs="+", metavar="CACHE",
+                    help="training caches (Procedural's KDE)")
     sp.add_argument("--num", type=int, default=64, help="conditioning scenes for MMD")
     sp.add_argument("--seed", type=int, default=0)
     sp.add_argument("--out", required=True, help="report JSON")

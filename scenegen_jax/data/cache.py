@@ -228,6 +228,33 @@ def load_cache(path: str) -> Cache:
     )
 
 
+def check_compatible(caches: Iterable[Cache], cfg: Config) -> None:
+    """Raises ValueError naming the cache and the field unless every cache has `cfg`'s grid
+    (grid_size, m_per_px, canvas_size) and the map channels the config reads, and all share
+    one channel layout (so that their canvases stack and train together)."""
+    caches = list(caches)
+    want = {"grid_size": cfg.grid_size, "m_per_px": cfg.m_per_px, "canvas_size": cfg.canvas_size}
+    hint = f"re-run prepare with --config {cfg.name} (and the same --set overrides)"
+    for cache in caches:
+        for field, value in want.items():
+            got = cache.meta.get(field, cache.maps.shape[1] if field == "canvas_size" else None)
+            if got != value:
+                raise ValueError(f"{cache.path}: field {field}: cache has {got}, config "
+                                 f"{cfg.name!r} wants {value}; {hint}")
+        channels = list(cache.meta.get("channels") or [])
+        missing = [c for c in cfg.map_channels if c not in channels]
+        if missing:
+            raise ValueError(f"{cache.path}: field channels: no map layer(s) {missing} that "
+                             f"config {cfg.name!r} reads (map_layers {list(cfg.map_layers)})")
+        first = list(caches[0].meta.get("channels") or [])
+        if channels != first:
+            raise ValueError(f"{cache.path}: field channels: {channels} differ from "
+                             f"{caches[0].path}'s {first}")
+        if cache.maps.shape[-1] != len(channels):
+            raise ValueError(f"{cache.path}/maps.npy: {cache.maps.shape[-1]} channels, "
+                             f"meta.json lists {len(channels)}")
+
+
 def cached_scene(cache: Cache, index: int, cfg: Config) -> tuple[np.ndarray, Actors, Actors]:
     """(map canvas, cached actors [A], ego) of scene `index`, as numpy."""
     if not 0 <= index < len(cache):

@@ -105,12 +105,16 @@ def ray_distances(origins: np.ndarray, dirs: np.ndarray, max_m: float, segs: np.
     return out
 
 
-def _side_distances(center: np.ndarray, max_m: float, segs: np.ndarray) -> np.ndarray:
-    """[P, 2] distances to the nearest crossed segment on the (left, right) of a centreline."""
-    n = normals(center)
-    return np.stack(
-        [ray_distances(center, n, max_m, segs), ray_distances(center, -n, max_m, segs)], axis=1
+def _side_distances(centers: Sequence[np.ndarray], max_m: float, segs: np.ndarray) -> list:
+    """Per centreline, [P, 2] distances to the nearest segment crossed on its (left, right)."""
+    if not centers:
+        return []
+    points = np.concatenate(centers)
+    n = np.concatenate([normals(c) for c in centers])
+    both = np.stack(
+        [ray_distances(points, n, max_m, segs), ray_distances(points, -n, max_m, segs)], axis=1
     )
+    return np.split(both, np.cumsum([len(c) for c in centers])[:-1])
 
 
 def _crossing_lanes(centers: Sequence[np.ndarray]) -> np.ndarray:
@@ -146,11 +150,14 @@ def outline_lanes(
     """
     all_segs = _segments([line.points for line in lines])
     edge_segs = _segments([line.points for line in lines if line.mark == ROAD_EDGE])
-    crossing = _crossing_lanes([c.points for c in centerlines])
+    centers = [np.asarray(c.points, np.float64) for c in centerlines]
+    crossing = _crossing_lanes(centers)
+    to_line = _side_distances(centers, MAX_HALF_WIDTH_M, all_segs)
+    to_edge = _side_distances(centers, MAX_EDGE_M, edge_segs)
     lanes, drivable = [], []
-    for c, crosses in zip(centerlines, crossing, strict=True):
-        center = np.asarray(c.points, np.float64)
-        half = _side_distances(center, MAX_HALF_WIDTH_M, all_segs)
+    for c, center, crosses, half, edge in zip(
+        centerlines, centers, crossing, to_line, to_edge, strict=True
+    ):
         half = np.where(np.isfinite(half), np.maximum(half, MIN_HALF_WIDTH_M), DEFAULT_HALF_WIDTH_M)
         if c.half_widths is not None:
             given = np.asarray(c.half_widths, np.float64)
@@ -168,7 +175,6 @@ def outline_lanes(
                 predecessors=c.predecessors,
             )
         )
-        edge = _side_distances(center, MAX_EDGE_M, edge_segs)
         reach = np.where(np.isfinite(edge), np.maximum(edge, half), half)
         outer_left, outer_right = offset_centerline(center, reach[:, 0], reach[:, 1])
         drivable.append(np.concatenate([outer_left, outer_right[::-1]], axis=0))

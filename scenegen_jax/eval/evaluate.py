@@ -16,7 +16,7 @@ from scenegen_jax.data.cache import Cache, cached_scene
 from scenegen_jax.data.sources import read_frames
 from scenegen_jax.eval import baselines
 from scenegen_jax.eval.mmd import mmd_table
-from scenegen_jax.eval.nll import score_cache, summarize_scores
+from scenegen_jax.eval.nll import score_cache, summarize_by_source, summarize_scores
 from scenegen_jax.raster.transform import scene_from_cached
 from scenegen_jax.sampling.rollout import sample_scenes
 
@@ -52,18 +52,28 @@ def sample_scenegen(params, cfg: Config, maps, scenes, seed: int, batch_size: in
 
 
 def sample_baselines(cfg: Config, cache: Cache, indices, train_cache: Cache, seed: int):
-    """{method: [numpy Actors]} from Prob. Grammar and Procedural on the scenes' vector maps."""
-    wanted = {cache.scene_ids[int(i)]: n for n, i in enumerate(indices)}
+    """{method: [numpy Actors]} from Prob. Grammar and Procedural on the scenes' vector maps.
+
+    `cache` (and `train_cache`) may be a `train.data.CacheUnion`: each scene's map is read
+    again from its own cache's source."""
+    members = getattr(cache, "members", [cache])
+    offsets = np.asarray(getattr(cache, "offsets", [0, len(cache)]))
+    indices = np.asarray(indices, np.int64)
     frames = [None] * len(indices)
-    spec = cache.meta.get("source") or {}
-    if not spec:
-        raise ValueError(f"{cache.path}/meta.json: field source missing; re-run prepare")
-    for frame in read_frames({**spec, "stride": 1}, collections.Counter()):
-        if frame.scene_id in wanted:
-            frames[wanted[frame.scene_id]] = frame
-    missing = [sid for sid, n in wanted.items() if frames[n] is None]
-    if missing:
-        raise ValueError(f"{spec.get('root')}: scenes {missing[:3]} not found in the source")
+    for m, member in enumerate(members):
+        mine = np.flatnonzero((indices >= offsets[m]) & (indices < offsets[m + 1]))
+        if not len(mine):
+            continue
+        wanted = {member.scene_ids[int(indices[n] - offsets[m])]: int(n) for n in mine}
+        spec = member.meta.get("source") or {}
+        if not spec:
+            raise ValueError(f"{member.path}/meta.json: field source missing; re-run prepare")
+        for frame in read_frames({**spec, "stride": 1}, collections.Counter()):
+            if frame.scene_id in wanted:
+                frames[wanted[frame.scene_id]] = frame
+        missing = [sid for sid, n in wanted.items() if frames[n] is None]
+        if missing:
+            raise ValueError(f"{spec.get('root')}: scenes {missing[:3]} not found in the source")
     kde = baselines.fit_size_kde(train_cache.actors, region_m=cfg.region_m)
     rng = np.random.default_rng(seed)
     return {
@@ -73,9 +83,12 @@ def sample_baselines(cfg: Config, cache: Cache, indices, train_cache: Cache, see
 
 
 def evaluate(params, cfg: Config, cache: Cache, train_cache: Cache, num_scenes: int, seed: int):
-    """NLL of every cached scene and MMD rows for every method on `num_scenes` scenes."""
+    """NLL of every cached scene (overall and per source) and MMD rows for every method on
+    `num_scenes` scenes spread evenly over all of them. `cache` may be a
+    `train.data.CacheUnion` of several caches (sources)."""
     scores = score_cache(params, cache, cfg)
     nll = summarize_scores(scores)
+    nll_by_source = summarize_by_source(scores, cache)
     indices = np.linspace(0, len(cache) - 1, min(num_scenes, len(cache))).astype(int)
     maps, scenes = real_scenes(cache, indices, cfg)
     generated = sample_baselines(cfg, cache, indices, train_cache, seed)
@@ -84,7 +97,8 @@ def evaluate(params, cfg: Config, cache: Cache, train_cache: Cache, num_scenes: 
     mmd = {m: mmd_table(real, generated[m], region_m=cfg.region_m) for m in METHODS}
     counts = {m: float(np.mean([np.sum(a.valid) for a in generated[m]])) for m in METHODS}
     counts["real"] = float(np.mean([np.sum(a.valid) for a in real]))
-    return {"nll": nll, "mmd": mmd, "mean_actors": counts, "conditioning_scenes": len(indices)}
+    return {"nll": nll, "nll_by_source": nll_by_source, "mmd": mmd, "mean_actors": counts,
+            "conditioning_scenes": len(indices)}
 
 
 def format_table(report: dict) -> str:
@@ -96,4 +110,12 @@ def format_table(report: dict) -> str:
         scene_nll = f"{nll['scene_nll']:.1f}" if m == "SceneGen" else "-"
         row = [f"{report['mmd'][m].get(r, float('nan')):.4f}" for r in MMD_ROWS]
         lines.append(" | ".join([m, scene_nll, *row]))
+    by_source = report.get("nll_by_source") or {}
+    if len(by_source) > 1:
+        lines.append("")
+        lines.append("SceneGen NLL by source | scenes | NLL/scene | NLL/actor")
+        for name, r in by_source.items():
+            lines.append(
+                f"{name} | {r['scenes']} | {r['scene_nll']:.1f} | {r['nll_per_actor']:.2f}"
+            )
     return "\n".join(lines)

@@ -99,6 +99,20 @@ def summarize_scores(scores: dict) -> dict:
     return out
 
 
+def source_slices(cache) -> list[tuple[str, slice]]:
+    """(label, scene slice) of each cache of a `CacheUnion` (one, unlabelled: "all")."""
+    labels = getattr(cache, "labels", None) or ["all"]
+    offsets = getattr(cache, "offsets", (0, len(cache)))
+    return [(name, slice(int(a), int(b)))
+            for name, a, b in zip(labels, offsets[:-1], offsets[1:], strict=True)]
+
+
+def summarize_by_source(scores: dict, cache) -> dict:
+    """`summarize_scores` of each source (cache) of a `CacheUnion`, by its label."""
+    return {name: summarize_scores({k: v[s] for k, v in scores.items()})
+            for name, s in source_slices(cache)}
+
+
 def worst_scenes(scores: dict, k: int) -> list[tuple[int, int, float, dict]]:
     """The k scenes with the highest NLL per actor, most unlikely first (paper Figure 5).
 

@@ -17,11 +17,17 @@ from jax.sharding import PartitionSpec as P
 from tqdm import tqdm
 
 from scenegen_jax.config import Config
-from scenegen_jax.data.cache import load_cache
 from scenegen_jax.distributions import TERMS
 from scenegen_jax.scene import CLASS_NAMES
 from scenegen_jax.train.checkpoint import Checkpointer
-from scenegen_jax.train.data import batch_indices, gather_batch, to_device
+from scenegen_jax.train.data import (
+    CacheUnion,
+    gather_batch,
+    load_union,
+    resolve_weights,
+    to_device,
+    union_indices,
+)
 from scenegen_jax.train.step import (
     TrainState,
     check_batch,
@@ -33,6 +39,7 @@ from scenegen_jax.train.step import (
 
 log = logging.getLogger(__name__)
 CONFIG_FILE = "config.json"
+DATA_FILE = "data.json"
 
 
 def save_or_check_config(workdir: str, cfg: Config) -> None:
@@ -50,6 +57,49 @@ def save_or_check_config(workdir: str, cfg: Config) -> None:
         return
     with open(path, "w") as f:
         f.write(cfg.to_json())
+
+
+def data_record(union: CacheUnion, weights) -> dict:
+    """What a run trains on: the caches (absolute paths, source kinds, scene counts), the
+    --weights as given (None: by scene count) and the resulting draw shares."""
+    return {
+        "caches": [
+            {"path": os.path.abspath(c.path), "source": (c.meta.get("source") or {}).get("kind"),
+             "scenes": len(c)}
+            for c in union.members
+        ],
+        "weights": None if weights is None else [float(w) for w in weights],
+        "shares": resolve_weights(union.sizes, weights).tolist(),
+    }
+
+
+def save_or_check_data(workdir: str, union: CacheUnion, weights=None) -> dict:
+    """Writes `data_record` beside the config; a resume must train on the same caches (same
+    paths, in the same order, with the same scene counts) and the same shares, since the data
+    order is a function of them. A workdir from before this record gets one."""
+    os.makedirs(workdir, exist_ok=True)
+    path = os.path.join(workdir, DATA_FILE)
+    record = data_record(union, weights)
+    if not os.path.exists(path):
+        with open(path, "w") as f:
+            json.dump(record, f, indent=1)
+        return record
+    with open(path) as f:
+        saved = json.load(f)
+    hint = "use the same --data list and --weights, or a new --workdir"
+    was = [c["path"] for c in saved["caches"]]
+    now = [c["path"] for c in record["caches"]]
+    if was != now:
+        raise ValueError(f"{path}: this workdir was trained on --data {was}, not {now}; {hint}")
+    for a, b in zip(saved["caches"], record["caches"], strict=True):
+        if a["scenes"] != b["scenes"]:
+            raise ValueError(f"{path}: cache {b['path']} had {a['scenes']} scenes when this run "
+                             f"started and has {b['scenes']} now; {hint}")
+    if not np.allclose(saved["shares"], record["shares"], rtol=1e-9, atol=0):
+        raise ValueError(f"{path}: this workdir was trained with --weights {saved['weights']} "
+                         f"(shares {saved['shares']}), not {record['weights']} "
+                         f"(shares {record['shares']}); {hint}")
+    return saved
 
 
 def load_workdir_config(workdir: str) -> Config:
@@ -75,7 +125,7 @@ def summarize(stats: dict) -> dict:
 
 def train(
     cfg: Config,
-    data_dir: str,
+    data_dir: str | list[str],
     workdir: str,
     steps: int,
     save_every: int = 100,
@@ -84,14 +134,22 @@ def train(
     progress: bool = True,
     max_seconds: float | None = None,
     init_from: str | None = None,
+    weights: list[float] | None = None,
 ) -> TrainState:
     """Trains until `steps` total steps (or `max_seconds` of wall time), resuming from
     `workdir`'s latest checkpoint; the last state is always saved. A fresh run (no checkpoint
     yet) with `init_from` starts from that workdir's trained parameters (`warm_start`), with a
-    fresh optimizer and step 0."""
-    cache = load_cache(data_dir)
-    cache.check_config(cfg)
+    fresh optimizer and step 0.
+
+    `data_dir`: one cache or a list of caches of this config (`check_compatible`), trained on
+    together (`CacheUnion`); each scene is drawn from cache i with probability
+    `weights[i]` / sum(weights) (default: uniform over all scenes). The list and the weights
+    are kept in WORKDIR/data.json, and a resume must use the same (`save_or_check_data`).
+    """
+    cache = load_union(data_dir, cfg)
+    shares = resolve_weights(cache.sizes, weights)
     save_or_check_config(workdir, cfg)
+    save_or_check_data(workdir, cache, weights)
     mesh = make_mesh()
     step_fn = None  # compiled for the first batch's shapes (every batch has the same)
     data_sharding = NamedSharding(mesh, P("data"))
@@ -120,9 +178,9 @@ def train(
     acc, t0, n0 = None, time.perf_counter(), start
     t_start = t0
     for step in range(start, steps):
-        indices = batch_indices(len(cache), cfg.batch_size, cfg.seed, step)
+        indices = union_indices(cache, shares, cfg.batch_size, cfg.seed, step)
         host = gather_batch(cache, indices, cfg)
-        check_batch(host, [cache.scene_ids[i] for i in indices])
+        check_batch(host, [cache.scene_name(i) for i in indices])
         batch = to_device(host, data_sharding)
         if step_fn is None:
             step_fn = compile_train_step(cfg, state, batch, mesh)
