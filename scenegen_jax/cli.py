@@ -12,6 +12,7 @@ import sys
 from tqdm import tqdm
 
 from scenegen_jax.config import PRESETS, Config, apply_overrides, get_config
+from scenegen_jax.data.sources import DEFAULT_STRIDE, SOURCES
 
 
 def _overrides(pairs: list[str]) -> dict[str, str]:
@@ -25,15 +26,17 @@ def _overrides(pairs: list[str]) -> dict[str, str]:
 
 
 def cmd_prepare(args) -> None:
-    from scenegen_jax.data.cache import write_cache
-    from scenegen_jax.data.sources import read_frames, source_spec
+    from scenegen_jax.data.prepare import prepare
+    from scenegen_jax.data.sources import source_spec
 
     cfg = get_config(args.config, **_overrides(args.set))
     spec = source_spec(args.source, args.root, args.split, args.stride)
-    drops: collections.Counter = collections.Counter()
-    with tqdm(desc=f"prepare {args.source}:{args.split}", unit="scene", file=sys.stderr) as bar:
-        summary = write_cache(read_frames(spec, drops), args.out, cfg, drops, bar, spec)
-    print(json.dumps({"out": args.out, "config": cfg.name, **summary.to_dict()}))
+    with tqdm(desc=f"prepare {args.source}", unit="file", file=sys.stderr) as bar:
+        summary, rate = prepare(
+            spec, args.out, cfg, workers=args.workers, strict=args.strict, progress=bar
+        )
+    out = {"out": args.out, "config": cfg.name, "scenes_per_s": round(rate, 2)}
+    print(json.dumps({**out, **summary.to_dict()}))
 
 
 def cmd_render(args) -> None:
@@ -413,12 +416,20 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
 
     sp = sub.add_parser("prepare", help="read logs into a preprocessed cache")
-    sp.add_argument("--source", choices=("av2", "scenarionet"), default="av2")
+    sp.add_argument("--source", choices=SOURCES, default="av2",
+                    help="av2: Argoverse 2 logs; scenarionet: ScenarioNet pickles; womd_json: "
+                    "Waymo scenes as GPUDrive / Nocturne JSON")
     sp.add_argument("--root", required=True, help="dataset root (av2: holds train/ and val/)")
-    sp.add_argument("--split", default="train", help="av2 split folder (train, val)")
+    sp.add_argument("--split", help="sub-folder of --root (av2: default train; others: all "
+                    "files under --root when not given)")
     sp.add_argument("--out", required=True, help="cache directory to write")
     sp.add_argument("--config", default="tiny", choices=sorted(PRESETS))
-    sp.add_argument("--stride", type=int, default=1, help="keep every N-th frame of a log")
+    sp.add_argument("--stride", type=int, default=DEFAULT_STRIDE,
+                    help="keep every N-th step of a log or scenario (10 Hz: default 10, one "
+                    "frame per second)")
+    sp.add_argument("--workers", type=int, help="processes (default: one per core)")
+    sp.add_argument("--strict", action="store_true",
+                    help="stop at the first unusable file instead of skipping and counting it")
     sp.add_argument("--set", nargs="*", metavar="FIELD=VALUE", help="config overrides")
     sp.set_defaults(func=cmd_prepare)
 

@@ -48,7 +48,9 @@ class Summary:
 
     `actors` counts actors inside the region of interest per class, `outside_region` the rows
     of modelled classes outside it (kept in the cache only as far as rotations can reach), so
-    actors + outside_region is every row of a modelled class that was read.
+    actors + outside_region is every row of a modelled class that was read. `bad_files`
+    counts files that could not be read, by reason (their names are in the log and in
+    `bad_file_list`).
     """
 
     scenes: int = 0
@@ -57,9 +59,132 @@ class Summary:
     outside_region: dict = dataclasses.field(default_factory=lambda: {c: 0 for c in CLASS_NAMES})
     overflow: int = 0
     empty_scenes: int = 0
+    files: int = 0
+    bad_files: dict = dataclasses.field(default_factory=dict)
+    bad_file_list: list = dataclasses.field(default_factory=list)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
+
+
+@dataclasses.dataclass
+class EncodedFrame:
+    """A frame as the cache stores it: its map canvas and padded actors, with counts."""
+
+    scene_id: str
+    map: np.ndarray  # float16 [C, C, len(ALL_MAP_CHANNELS)]
+    actors: dict  # padded arrays by ACTOR_FIELDS
+    ego_velocity: np.ndarray  # [2] m/s
+    ego_size: np.ndarray  # [2] m
+    city_from_ego: np.ndarray  # [3, 3]
+    inside: dict  # in-region actors per class name
+    outside: dict  # disc actors outside the region per class name
+    overflow: int
+
+
+def encode_frame(frame: Frame, cfg: Config) -> EncodedFrame:
+    """Rasterizes and pads one frame (the expensive part of `prepare`; runs in workers)."""
+    padded, inside, overflow = pad_frame_actors(frame, cfg, cache_slots(cfg))
+    return EncodedFrame(
+        scene_id=frame.scene_id,
+        map=rasterize_map(frame.map, cfg.canvas_size, cfg.m_per_px).astype(np.float16),
+        actors=padded,
+        ego_velocity=np.asarray(frame.ego_velocity, np.float32),
+        ego_size=np.asarray(frame.ego_size, np.float32),
+        city_from_ego=np.asarray(frame.city_from_ego, np.float64),
+        inside={n: int(np.sum(inside & (frame.cls == c))) for c, n in enumerate(CLASS_NAMES)},
+        outside={n: int(np.sum(~inside & (frame.cls == c))) for c, n in enumerate(CLASS_NAMES)},
+        overflow=overflow,
+    )
+
+
+class _NpyAppender:
+    """Writes a .npy array one leading-axis item at a time, so maps never sit in memory.
+
+    The header is written first with room for any count and rewritten with the real one at
+    `close` (same length, padded with spaces, as the .npy format allows).
+    """
+
+    HEADER_BYTES = 256
+
+    def __init__(self, path: str, item_shape: tuple[int, ...], dtype) -> None:
+        self.path, self.item_shape, self.dtype = path, item_shape, np.dtype(dtype)
+        self.count = 0
+        self.file = open(path + ".tmp", "wb")  # noqa: SIM115 (closed in close())
+        self.file.write(self._header(0))
+
+    def _header(self, count: int) -> bytes:
+        shape = (count, *self.item_shape)
+        text = repr({"descr": self.dtype.str, "fortran_order": False, "shape": shape})
+        body = self.HEADER_BYTES - 10  # magic (6) + version (2) + length (2)
+        text = text.ljust(body - 1) + "\n"
+        return b"\x93NUMPY\x01\x00" + body.to_bytes(2, "little") + text.encode("latin1")
+
+    def append(self, item: np.ndarray) -> None:
+        self.file.write(np.ascontiguousarray(item, self.dtype).tobytes())
+        self.count += 1
+
+    def close(self) -> None:
+        self.file.seek(0)
+        self.file.write(self._header(self.count))
+        self.file.close()
+        os.replace(self.path + ".tmp", self.path)
+
+
+class CacheWriter:
+    """Appends encoded frames to a cache directory; `close` writes the arrays and meta.json."""
+
+    def __init__(self, out_dir: str, cfg: Config, source: dict | None = None) -> None:
+        os.makedirs(out_dir, exist_ok=True)
+        self.out_dir, self.cfg, self.source = out_dir, cfg, source or {}
+        self.summary = Summary()
+        size = cfg.canvas_size
+        self.maps = _NpyAppender(
+            os.path.join(out_dir, "maps.npy"), (size, size, len(ALL_MAP_CHANNELS)), np.float16
+        )
+        self.arrays: dict = collections.defaultdict(list)
+        self.ids: list[str] = []
+
+    def add(self, enc: EncodedFrame) -> None:
+        self.maps.append(enc.map)
+        for k in ACTOR_FIELDS:
+            self.arrays[k].append(enc.actors[k])
+        for k in ("ego_velocity", "ego_size", "city_from_ego"):
+            self.arrays[k].append(getattr(enc, k))
+        self.ids.append(enc.scene_id)
+        s = self.summary
+        s.scenes += 1
+        for name in CLASS_NAMES:
+            s.actors[name] += enc.inside[name]
+            s.outside_region[name] += enc.outside[name]
+        s.overflow += enc.overflow
+        s.empty_scenes += int(not any(enc.inside.values()))
+
+    def close(self, drops: collections.Counter) -> Summary:
+        """Writes actors.npz and meta.json (with `drops` as the summary's dropped rows)."""
+        self.maps.close()
+        if not self.ids:
+            raise ValueError(f"{self.out_dir}: no scenes to write")
+        self.summary.dropped = dict(sorted(drops.items()))
+        np.savez(
+            os.path.join(self.out_dir, "actors.npz"),
+            **{k: np.stack(v) for k, v in self.arrays.items()},
+        )
+        meta = {
+            "version": CACHE_VERSION,
+            "grid_size": self.cfg.grid_size,
+            "m_per_px": self.cfg.m_per_px,
+            "canvas_size": self.cfg.canvas_size,
+            "slots": cache_slots(self.cfg),
+            "channels": list(ALL_MAP_CHANNELS),
+            "config": json.loads(self.cfg.to_json()),
+            "scene_ids": self.ids,
+            "summary": self.summary.to_dict(),
+            "source": self.source,
+        }
+        with open(os.path.join(self.out_dir, "meta.json"), "w") as f:
+            json.dump(meta, f, indent=1)
+        return self.summary
 
 
 def write_cache(
@@ -70,61 +195,19 @@ def write_cache(
     progress=None,
     source: dict | None = None,
 ) -> Summary:
-    """Rasterizes and pads every frame into `out_dir`; returns the summary.
+    """Rasterizes and pads every frame into `out_dir` in this process; returns the summary.
 
     `drops` is the reader's counter of dropped rows; it is read after the frames are consumed.
     `source` (e.g. {"kind": "av2", "root": ..., "split": ..., "stride": ...}) is recorded so
-    that the vector maps can be read again (the baselines need them).
-    Actor counts are of actors inside the region of interest (the ones a scene models).
+    that the vector maps can be read again (the baselines need them). `scenegen_jax.data.
+    prepare` does the same over a source's files in parallel.
     """
-    os.makedirs(out_dir, exist_ok=True)
-    size = cfg.canvas_size
-    slots = cache_slots(cfg)
-    summary = Summary()
-    maps, arrays, ids, ego_v, ego_size, poses = [], collections.defaultdict(list), [], [], [], []
+    writer = CacheWriter(out_dir, cfg, source)
     for frame in frames:
-        maps.append(rasterize_map(frame.map, size, cfg.m_per_px).astype(np.float16))
-        padded, inside, overflow = pad_frame_actors(frame, cfg, slots)
-        for k in ACTOR_FIELDS:
-            arrays[k].append(padded[k])
-        ids.append(frame.scene_id)
-        ego_v.append(frame.ego_velocity)
-        ego_size.append(frame.ego_size)
-        poses.append(frame.city_from_ego)
-        summary.scenes += 1
-        for c, name in enumerate(CLASS_NAMES):
-            summary.actors[name] += int(np.sum(inside & (frame.cls == c)))
-            summary.outside_region[name] += int(np.sum(~inside & (frame.cls == c)))
-        summary.overflow += overflow
-        summary.empty_scenes += int(not inside.any())
+        writer.add(encode_frame(frame, cfg))
         if progress is not None:
             progress.update(1)
-    if not ids:
-        raise ValueError(f"{out_dir}: no scenes to write")
-    summary.dropped = dict(sorted(drops.items()))
-    np.save(os.path.join(out_dir, "maps.npy"), np.stack(maps))
-    np.savez(
-        os.path.join(out_dir, "actors.npz"),
-        **{k: np.stack(v) for k, v in arrays.items()},
-        ego_velocity=np.stack(ego_v).astype(np.float32),
-        ego_size=np.stack(ego_size).astype(np.float32),
-        city_from_ego=np.stack(poses),
-    )
-    meta = {
-        "version": CACHE_VERSION,
-        "grid_size": cfg.grid_size,
-        "m_per_px": cfg.m_per_px,
-        "canvas_size": size,
-        "slots": slots,
-        "channels": list(ALL_MAP_CHANNELS),
-        "config": json.loads(cfg.to_json()),
-        "scene_ids": ids,
-        "summary": summary.to_dict(),
-        "source": source or {},
-    }
-    with open(os.path.join(out_dir, "meta.json"), "w") as f:
-        json.dump(meta, f, indent=1)
-    return summary
+    return writer.close(drops)
 
 
 def pad_frame_actors(frame: Frame, cfg: Config, slots: int) -> tuple[dict, np.ndarray, int]:

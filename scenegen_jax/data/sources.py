@@ -1,4 +1,11 @@
-"""One entry point to read frames from any supported source (recorded in caches)."""
+"""One entry point to read frames from any supported source (recorded in caches).
+
+A source is a `spec` dict: {"kind", "root", "split", "stride"}. Its unit of work is a file
+(`source_files`): an Argoverse 2 log directory, a ScenarioNet pickle or a GPUDrive / Nocturne
+JSON scenario; `read_file` turns one into frames, so that `prepare` can read files in
+parallel and skip a bad one without losing the others. `stride` is in steps of the source's
+10 Hz tracks: the default, 10, keeps one frame per second of every log or scenario.
+"""
 
 from __future__ import annotations
 
@@ -8,28 +15,67 @@ from collections.abc import Iterator
 
 from scenegen_jax.data.frame import Frame
 
-SOURCES = ("av2", "scenarionet")
+SOURCES = ("av2", "scenarionet", "womd_json")
+DEFAULT_STRIDE = 10  # steps: one frame per second of a 10 Hz log
 
 
-def source_spec(kind: str, root: str, split: str, stride: int) -> dict:
-    """The description of a source that `read_frames` takes and caches record."""
+def source_spec(kind: str, root: str, split: str | None = None, stride: int = DEFAULT_STRIDE):
+    """The description of a source that `read_frames` takes and caches record.
+
+    `split` is a sub-folder of `root` (Argoverse 2: required, default "train"; the other
+    sources: optional, every file under `root` when None).
+    """
     if kind not in SOURCES:
         raise ValueError(f"unknown source {kind!r}; choose one of {SOURCES}")
     if stride < 1:
         raise ValueError(f"stride must be >= 1, got {stride}")
+    if kind == "av2" and split is None:
+        split = "train"
     return {"kind": kind, "root": os.path.abspath(root), "split": split, "stride": stride}
 
 
-def read_frames(spec: dict, drops: collections.Counter) -> Iterator[Frame]:
-    """Frames of a source spec; dropped rows are counted into `drops`."""
+def source_files(spec: dict) -> list[str]:
+    """The files (or, for Argoverse 2, log directories) of a source, sorted."""
     if spec["kind"] == "av2":
-        from scenegen_jax.data.av2 import read_split
+        from scenegen_jax.data.av2 import list_logs
 
-        yield from read_split(spec["root"], spec["split"], drops, stride=spec["stride"])
-        return
-    from scenegen_jax.data.scenarionet import read_scenarionet
+        return list_logs(spec["root"], spec["split"])
+    root = os.path.join(spec["root"], spec["split"]) if spec.get("split") else spec["root"]
+    if spec["kind"] == "scenarionet":
+        from scenegen_jax.data.scenarionet import scenario_files
+    else:
+        from scenegen_jax.data.womd_json import scenario_files
+    return [str(p) for p in scenario_files(root)]
 
-    for i, (frame, dropped) in enumerate(read_scenarionet(spec["root"])):
+
+def read_file(spec: dict, path: str) -> tuple[list[Frame], collections.Counter]:
+    """Frames of one file of a source, and the rows and map features it dropped, by reason.
+
+    Raises ValueError / OSError naming the file (and the field) when the file is unusable.
+    """
+    stride = spec["stride"]
+    if spec["kind"] == "av2":
+        from scenegen_jax.data.av2 import read_log
+
+        drops: collections.Counter = collections.Counter()
+        frames = [f for i, f in enumerate(read_log(path, drops)) if i % stride == 0]
+        return frames, drops
+    if spec["kind"] == "scenarionet":
+        from scenegen_jax.data.scenarionet import frames_from_scenario, read_scenario
+
+        imported = frames_from_scenario(read_scenario(path), path, stride=stride)
+        drops = collections.Counter()
+        for item in imported:
+            drops.update(item.dropped)
+        return [item.frame for item in imported], drops
+    from scenegen_jax.data import womd_json
+
+    return womd_json.read_file(path, stride)
+
+
+def read_frames(spec: dict, drops: collections.Counter) -> Iterator[Frame]:
+    """Frames of every file of a source, in order; dropped rows are counted into `drops`."""
+    for path in source_files(spec):
+        frames, dropped = read_file(spec, path)
         drops.update(dropped)
-        if i % spec["stride"] == 0:
-            yield frame
+        yield from frames
