@@ -11,8 +11,8 @@ BIN=.venv/bin
 mkdir -p "$OUT"
 
 echo "== 1. prepare train and val caches ($CONFIG config)"
-$BIN/scenegen prepare --source av2 --root "$DATA" --split train --out "$OUT/cache_train" --config "$CONFIG"
-$BIN/scenegen prepare --source av2 --root "$DATA" --split val --out "$OUT/cache_val" --config "$CONFIG"
+$BIN/scenegen prepare --source av2 --root "$DATA" --split train --out "$OUT/cache_train" --config "$CONFIG" --stride 1
+$BIN/scenegen prepare --source av2 --root "$DATA" --split val --out "$OUT/cache_val" --config "$CONFIG" --stride 1
 
 echo "== 2. render real validation scenes (cpu grid, 1.25 m/px)"
 $BIN/scenegen prepare --source av2 --root "$DATA" --split val --out "$OUT/cache_val_cpu" --config cpu --stride 25

@@ -9,6 +9,7 @@ import pytest
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DATA_ROOT = os.path.normpath(os.path.join(REPO, "..", "shared", "data", "av2_sensor_mini"))
+WOMD_ROOT = os.path.normpath(os.path.join(REPO, "..", "shared", "data", "womd_mini"))
 
 
 @pytest.fixture(scope="session")
@@ -16,6 +17,14 @@ def data_root() -> str:
     if not os.path.isdir(DATA_ROOT):
         pytest.fail(f"real data missing: {DATA_ROOT} (../shared must sit beside the repo)")
     return DATA_ROOT
+
+
+@pytest.fixture(scope="session")
+def womd_root() -> str:
+    """The real Waymo scenes (GPUDrive JSON and ScenarioNet pickles), read in place."""
+    if not os.path.isdir(WOMD_ROOT):
+        pytest.fail(f"real data missing: {WOMD_ROOT} (../shared must sit beside the repo)")
+    return WOMD_ROOT
 
 
 @pytest.fixture(scope="session")

@@ -121,7 +121,7 @@ def heading_unit_is_degrees(
         h = heading[moving]
 
         def error(rad: np.ndarray) -> float:
-            return float(np.median(np.abs(np.angle(np.exp(1j * (rad - direction))))))
+            return float(np.mean(np.abs(np.angle(np.exp(1j * (rad - direction))))))
 
         return error(np.deg2rad(h)) < error(h)
     h = heading[valid & np.isfinite(heading)]

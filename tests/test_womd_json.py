@@ -1,0 +1,254 @@
+"""The GPUDrive / Nocturne JSON reader: synthetic layouts, then every real womd_mini file."""
+
+from __future__ import annotations
+
+import collections
+import json
+import os
+
+import numpy as np
+import pytest
+
+from scenegen_jax.config import get_config
+from scenegen_jax.data import womd_json as W
+from scenegen_jax.data.prepare import prepare
+from scenegen_jax.data.sources import source_spec
+from scenegen_jax.data.surface import DEFAULT_HALF_WIDTH_M, Centerline, outline_lanes
+from scenegen_jax.data.vector_map import ROAD_EDGE, RoadLine
+from scenegen_jax.scene import BICYCLIST, PEDESTRIAN, VEHICLE
+
+
+
+# ---------------------------------------------------------------- synthetic layouts
+
+
+def _object(xy, heading, vel, valid, otype="vehicle", size=(2.0, 4.5), columns=False):
+    xy, vel = np.asarray(xy, float), np.asarray(vel, float)
+    if columns:
+        pos = {"x": xy[:, 0].tolist(), "y": xy[:, 1].tolist()}
+        v = {"x": vel[:, 0].tolist(), "y": vel[:, 1].tolist()}
+    else:
+        pos = [{"x": float(x), "y": float(y)} for x, y in xy]
+        v = [{"x": float(x), "y": float(y)} for x, y in vel]
+    return {
+        "position": pos,
+        "velocity": v,
+        "heading": [float(h) for h in heading],
+        "valid": [bool(b) for b in valid],
+        "width": size[0],
+        "length": size[1],
+        "type": otype,
+        "goalPosition": {"x": float(xy[-1, 0]), "y": float(xy[-1, 1])},
+    }
+
+
+def _scene(degrees: bool, columns: bool = False, sentinel: float = -10000.0, sdc=None):
+    """Three moving vehicles along +x (one 1 m/s behind), a pedestrian, a cyclist; T = 21."""
+    t = np.arange(21) * 0.1
+    objs = []
+    for i, (y, speed) in enumerate(((0.0, 10.0), (3.5, 8.0), (-3.5, 12.0))):
+        xy = np.stack([100 + speed * t + 5 * i, 50 + y + 0 * t], 1)
+        vel = np.tile([speed, 0.0], (21, 1))
+        heading = np.zeros(21) + (360.0 if degrees else 2 * np.pi) * (i == 1)  # unwrapped
+        objs.append(_object(xy, heading, vel, np.ones(21), columns=columns))
+    valid = np.ones(21, bool)
+    valid[15:] = False
+    xy = np.stack([110 + 0 * t, 58 + 1.2 * t], 1)
+    heading = np.full(21, 90.0 if degrees else np.pi / 2)
+    vel = np.tile([0.0, 1.2], (21, 1))
+    for arr in (xy, vel):
+        arr[~valid] = sentinel
+    heading[~valid] = sentinel
+    objs.append(_object(xy, heading, vel, valid, "pedestrian", (0.6, 0.6), columns))
+    xy = np.stack([90 + 5 * t, 45 + 0 * t], 1)
+    objs.append(_object(xy, np.zeros(21), np.tile([5.0, 0], (21, 1)), np.ones(21), "cyclist",
+                        (0.8, 1.8), columns))
+    lane = [{"x": float(x), "y": 50.0} for x in np.linspace(0, 300, 31)]
+    roads = [
+        {"geometry": lane, "type": "lane"},
+        {"geometry": [{"x": float(x), "y": 51.8} for x in np.linspace(0, 300, 31)],
+         "type": "road_line"},
+        {"geometry": [{"x": float(x), "y": 55.5} for x in np.linspace(0, 300, 31)],
+         "type": "road_edge"},
+        {"geometry": [{"x": 120.0, "y": 46.0}], "type": "stop_sign"},
+    ]
+    data = {"name": "synthetic.json", "objects": objs, "roads": roads, "tl_states": {}}
+    if sdc is not None:
+        data["metadata"] = {"sdc_track_index": sdc}
+    return data
+
+
+@pytest.mark.parametrize("degrees", [False, True])
+@pytest.mark.parametrize("columns", [False, True])
+def test_layouts_read_alike(degrees, columns):
+    frames, drops = W.frames_from_scenario(_scene(degrees, columns, sdc=0), "x.json", 10)
+    assert [f.scene_id for f in frames] == ["x/0", "x/10", "x/20"]
+    f = frames[1]  # t = 1 s: ego at x = 110, y = 50
+    assert sorted(f.cls.tolist()) == sorted([VEHICLE, VEHICLE, PEDESTRIAN, BICYCLIST])
+    v = f.cls == VEHICLE
+    # Unwrapped 2 pi / 360 degrees read as heading 0 in the ego frame.
+    np.testing.assert_allclose(np.cos(f.heading[v]), 1.0, atol=1e-9)
+    ped = f.position[f.cls == PEDESTRIAN][0]
+    np.testing.assert_allclose(ped, [0.0, 8 + 1.2], atol=1e-9)  # (110, 59.2) - (110, 50)
+    np.testing.assert_allclose(f.velocity[f.cls == PEDESTRIAN][0], [0.0, 1.2], atol=1e-9)
+    assert len(frames[2].cls) == 3  # the pedestrian is invalid (sentinel) at t = 2 s
+    assert drops["map:stop_sign"] == 1
+
+
+def test_sentinel_steps_never_become_actors():
+    frames, _ = W.frames_from_scenario(_scene(False, sentinel=0.0001, sdc=0), "x.json", 1)
+    for f in frames:
+        assert np.all(np.abs(f.position) < 100), f.scene_id
+
+
+def test_degrees_detected_from_velocity_not_from_range():
+    heading = np.full((1, 6), 10.0)  # 10 rad or 10 degrees: the velocity decides
+    valid = np.ones((1, 6), bool)
+    vel = np.array([[[np.cos(np.deg2rad(10)), np.sin(np.deg2rad(10))]] * 6]) * 5
+    assert W.heading_unit_is_degrees(heading, vel, valid)
+    vel = np.array([[[np.cos(10.0), np.sin(10.0)]] * 6]) * 5
+    assert not W.heading_unit_is_degrees(heading, vel, valid)
+    # Nothing moving: only the range tells (beyond 2 pi: degrees).
+    assert W.heading_unit_is_degrees(heading, vel * 0, valid)
+    assert not W.heading_unit_is_degrees(heading / 4, vel * 0, valid)
+
+
+def test_sdc_marker_and_estimate():
+    data = _scene(False, sdc=2)
+    frames, _ = W.frames_from_scenario(data, "x.json", 10)
+    np.testing.assert_allclose(frames[0].ego_velocity, [12.0, 0.0])
+    # No marker: the vehicle whose farthest other object is nearest is the ego (vehicle 1,
+    # in the middle of the others), never one valid at only some steps.
+    del data["metadata"]
+    tracks, _ = W.read_tracks(data["objects"], "x.json")
+    reach = []
+    for i in range(3):
+        d = np.linalg.norm(tracks.position - tracks.position[i], axis=-1)
+        d = np.where(tracks.valid, d, -np.inf)
+        d[i] = -np.inf
+        reach.append(d.max(axis=0).mean())
+    assert W.estimate_sdc(tracks) == int(np.argmin(reach))
+
+
+def test_bad_input_names_file_and_field():
+    data = _scene(False)
+    data["objects"][1]["width"] = "wide"
+    with pytest.raises(ValueError, match=r"x\.json: objects\[1\]\.width"):
+        W.frames_from_scenario(data, "x.json", 10)
+    data = _scene(False)
+    data["objects"][0]["heading"] = data["objects"][0]["heading"][:5]
+    with pytest.raises(ValueError, match=r"x\.json: objects\[0\]\.heading"):
+        W.frames_from_scenario(data, "x.json", 10)
+
+
+def test_surface_widths_from_lines_and_edges():
+    center = Centerline(id=0, lane_type="VEHICLE", points=np.stack(
+        [np.linspace(0, 50, 11), np.zeros(11)], 1))
+    line = RoadLine(np.array([[-5, 1.6], [55, 1.6]]), "DASHED_WHITE")
+    edge = RoadLine(np.array([[-5, -5.0], [55, -5.0]]), ROAD_EDGE)
+    (lane,), (drivable,) = outline_lanes([center], [line, edge])
+    np.testing.assert_allclose(lane.left[:, 1], 1.6)  # to the painted line
+    # The edge is 5 m away, beyond MAX_HALF_WIDTH_M: the lane keeps the default half width
+    # on that side, and the drivable surface reaches on to the kerb.
+    np.testing.assert_allclose(lane.right[:, 1], -DEFAULT_HALF_WIDTH_M)
+    np.testing.assert_allclose(drivable[:, 1].max(), 1.6)
+    np.testing.assert_allclose(drivable[:, 1].min(), -5.0)
+    assert not lane.is_intersection
+
+
+def test_crossing_centerlines_are_intersection_lanes():
+    straight = np.stack([np.linspace(0, 40, 9), np.zeros(9)], 1)
+    across = np.stack([np.full(9, 20.0), np.linspace(-20, 20, 9)], 1)
+    merge = np.stack([np.linspace(40, 60, 5), np.linspace(10, 0, 5)], 1)  # meets at an end
+    lanes, _ = outline_lanes(
+        [Centerline(i, "VEHICLE", p) for i, p in enumerate((straight, across, merge))], []
+    )
+    assert [lane.is_intersection for lane in lanes] == [True, True, False]
+
+
+# ---------------------------------------------------------------- the real files
+
+
+@pytest.fixture(scope="module")
+def womd_files(womd_root):
+    return [str(p) for p in W.scenario_files(os.path.join(womd_root, "gpudrive_json"))]
+
+
+@pytest.fixture(scope="module")
+def womd_frames(womd_files):
+    return {path: W.read_file(path, 10) for path in womd_files}
+
+
+def _direct_counts(path: str, stride: int) -> collections.Counter:
+    """Per class, rows valid at the frame steps, other than the ego, read with json alone."""
+    with open(path) as f:
+        data = json.load(f)
+    tracks, _ = W.read_tracks(data["objects"], path)
+    sdc = W.find_sdc(data, tracks, data["objects"], path)
+    out = collections.Counter()
+    for t in range(0, tracks.valid.shape[1], stride):
+        if not tracks.valid[sdc, t]:
+            continue
+        for o, otype in enumerate(tracks.type):
+            ok = tracks.valid[o, t] and o != sdc
+            ok = ok and (otype == "pedestrian" or bool(np.all(tracks.size[o] > 0)))
+            out[W.CLASS_FROM_TYPE[otype]] += int(ok)
+    return out
+
+
+def test_every_real_file_reads_with_direct_counts(womd_files, womd_frames):
+    assert len(womd_files) == 93
+    for path, (frames, _) in womd_frames.items():
+        assert frames, path
+        got = collections.Counter()
+        for f in frames:
+            got.update(f.cls.tolist())
+        assert +got == +_direct_counts(path, 10), path
+
+
+def test_real_vehicles_heading_velocity_length(womd_frames):
+    lengths, bad = [], []
+    for path, (frames, _) in womd_frames.items():
+        angles = []
+        for f in frames:
+            v = f.cls == VEHICLE
+            lengths.extend(f.size[v, 1].tolist())
+            moving = v & (np.linalg.norm(f.velocity, axis=1) > 2.0)
+            diff = f.heading[moving] - np.arctan2(f.velocity[moving, 1], f.velocity[moving, 0])
+            angles.extend(np.abs(np.angle(np.exp(1j * diff))).tolist())
+        # Scenes with at least 10 moving vehicle states (a handful of turning cars is not a
+        # median); every file with degrees read as radians would fail by tens of degrees.
+        if len(angles) >= 10 and np.degrees(np.median(angles)) >= 5.0:
+            bad.append((path, np.degrees(np.median(angles))))
+    assert not bad
+    assert 3.5 < np.median(lengths) < 6.0
+
+
+def test_real_maps_have_lanes_lines_and_surface(womd_frames):
+    for path, (frames, _) in womd_frames.items():
+        f = frames[0]
+        assert f.map.lanes and f.map.drivable_areas, path
+
+
+def test_prepare_counts_and_skips_a_corrupt_file(tmp_path, womd_files):
+    """A folder with one corrupt file among real ones: the good ones are prepared, the bad
+    one counted with its name; --strict stops at it."""
+    import shutil
+
+    src = tmp_path / "src"
+    src.mkdir()
+    for path in womd_files[:2]:
+        os.symlink(path, src / os.path.basename(path))  # read in place, never copied
+    (src / "broken.json").write_text('{"objects": [')
+    cfg = get_config("tiny")
+    spec = source_spec("womd_json", str(src), None, 30)
+    summary, _ = prepare(spec, str(tmp_path / "cache"), cfg, workers=2)
+    assert summary.files == 3
+    assert summary.bad_files == {"ValueError": 1}
+    assert "broken.json" in summary.bad_file_list[0]["file"]
+    direct = sum(sum(_direct_counts(p, 30).values()) for p in womd_files[:2])
+    assert sum(summary.actors.values()) + sum(summary.outside_region.values()) + \
+        summary.overflow == direct
+    with pytest.raises(ValueError, match="broken.json"):
+        prepare(spec, str(tmp_path / "cache2"), cfg, workers=1, strict=True)
+    shutil.rmtree(src)
