@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import jax
 import numpy as np
 
 from scenegen_jax.config import Config
@@ -49,14 +50,18 @@ def real_data_check(cache, cfg: Config, moving_mps: float = 2.0) -> dict:
     between heading and velocity direction of vehicles moving faster than `moving_mps`, with
     the number of such vehicle states.
     """
-    on = total = 0
+    on = total = moving_on = moving_total = 0
     lengths, per_scenario = [], {}
     a = cache.actors
     for i in range(len(cache)):
         sel = np.asarray(a.valid[i]) & (np.asarray(a.cls[i]) == VEHICLE)
-        sub = type(a)(**{k: np.asarray(getattr(a, k)[i]) for k in a.__dataclass_fields__})
-        o, t = drivable_share(np.asarray(cache.maps[i], np.float32), sub, cfg)
+        sub = jax.tree.map(lambda x, i=i: np.asarray(x[i]), a)
+        canvas = np.asarray(cache.maps[i], np.float32)
+        o, t = drivable_share(canvas, sub, cfg)
         on, total = on + o, total + t
+        moving = sub.valid & (np.linalg.norm(sub.velocity, axis=1) > moving_mps)
+        o, t = drivable_share(canvas, sub.replace(valid=moving), cfg)
+        moving_on, moving_total = moving_on + o, moving_total + t
         lengths.extend(np.asarray(a.size[i])[sel, 1].tolist())
         vel = np.asarray(a.velocity[i])[sel]
         moving = np.linalg.norm(vel, axis=1) > moving_mps
@@ -67,6 +72,8 @@ def real_data_check(cache, cfg: Config, moving_mps: float = 2.0) -> dict:
         "scenes": len(cache),
         "drivable_share": on / max(total, 1),
         "vehicles_within_40m": total,
+        "moving_drivable_share": moving_on / max(moving_total, 1),
+        "moving_vehicles_within_40m": moving_total,
         "median_vehicle_length_m": float(np.median(lengths)) if lengths else float("nan"),
         "heading_velocity_deg": {
             k: (float(np.degrees(np.median(v))), len(v)) for k, v in per_scenario.items() if v
