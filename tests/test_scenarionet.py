@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import collections
+import glob
 import os
 import pickle
 
 import numpy as np
 import pytest
+import scenarionet_fixtures as fx
+import shapely
 
 from scenegen_jax.data import scenarionet as sn
 from scenegen_jax.data.frame import Frame
@@ -17,12 +20,17 @@ from scenegen_jax.data.safe_pickle import (
     dump_pickle,
     load_pickle,
 )
-from scenegen_jax.data.vector_map import Lane, VectorMap, rotation_matrix
+from scenegen_jax.data.vector_map import ROAD_EDGE, Lane, RoadLine, VectorMap, rotation_matrix
+from scenegen_jax.raster.map import ALL_MAP_CHANNELS, rasterize_map
 from scenegen_jax.scene import BICYCLIST, PEDESTRIAN, VEHICLE
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+WOMD_ROOT = os.path.normpath(os.path.join(REPO, "..", "shared", "data", "womd_mini", "scenarionet"))
 
 
 def _hand_frame() -> Frame:
-    """Two actors of each class, a curved lane, a bus lane, a crosswalk and a drivable area."""
+    """Two actors of each class, a curved lane, a bus lane, a crosswalk, a drivable area, a road
+    edge and a painted line."""
     lane = Lane(
         id=7,
         lane_type="VEHICLE",
@@ -48,6 +56,10 @@ def _hand_frame() -> Frame:
         lanes=(lane, bus),
         crosswalks=(np.array([[5.0, -6.0], [8.0, -6.0], [8.0, 6.0], [5.0, 6.0]]),),
         drivable_areas=(np.array([[-30.0, -10.0], [40.0, -10.0], [40.0, 12.0], [-30.0, 12.0]]),),
+        lines=(
+            RoadLine(np.array([[-30.0, -9.5], [40.0, -9.7]]), ROAD_EDGE),
+            RoadLine(np.array([[-30.0, 5.4], [0.0, 5.5], [30.0, 5.45]]), "DOUBLE_DASH_YELLOW"),
+        ),
     )
     cls = np.array([VEHICLE, PEDESTRIAN, BICYCLIST, VEHICLE, PEDESTRIAN, BICYCLIST], np.int32)
     return Frame(
@@ -221,6 +233,10 @@ def test_export_has_scenarionet_shape():
     np.testing.assert_allclose(lane["width"][1], [1.8, 1.8], atol=0.2)
     assert s["map_features"]["crosswalk_0"]["type"] == "CROSSWALK"
     assert s["map_features"]["drivable_area_0"]["type"] == "ROAD_EDGE_BOUNDARY"
+    # standalone lines: a road edge and a painted line of the closest ScenarioNet type
+    assert s["map_features"]["line_0"]["type"] == "ROAD_EDGE_BOUNDARY"
+    assert s["map_features"]["line_1"]["type"] == "ROAD_LINE_BROKEN_SINGLE_YELLOW"
+    assert s["map_features"]["line_1"]["polyline"].shape == (3, 3)
 
 
 def test_export_rejects_bad_frames():
@@ -289,7 +305,7 @@ def test_standard_scenario_imports_in_ego_frame():
 
     # current_time_index = 1: SDC at (101, 50) heading +y (pi/2), velocity 10 m/s along +y.
     assert frame.scene_id == "scn/1"
-    assert dropped == collections.Counter({"type:OTHER": 1, "map:ROAD_LINE_SOLID_SINGLE_WHITE": 1})
+    assert dropped == collections.Counter({"type:OTHER": 1})
     np.testing.assert_array_equal(frame.cls, [VEHICLE, PEDESTRIAN, BICYCLIST])
     assert list(frame.track_id) == ["11", "12", "14"]
     # world (100, 60) is 10 m ahead and 1 m to the left of the ego
@@ -312,14 +328,22 @@ def test_standard_scenario_imports_in_ego_frame():
     lane = lanes[201]
     assert lane.lane_type == "VEHICLE" and not lane.is_intersection
     assert lane.successors == (202,) and lane.predecessors == (200,)  # integer ids kept
-    # centreline x = 100 in the world is ego y = +1; boundaries 1.8 m either side (width was 0)
-    np.testing.assert_allclose(lane.centerline[:, 1], 1.0, atol=1e-5)
-    np.testing.assert_allclose(lane.left[:, 1] - lane.right[:, 1], 3.6, atol=1e-5)
-    # lane runs along world +y = ego +x, so its left is world -x = ego +y
-    assert np.all(lane.left[:, 1] > lane.right[:, 1])
+    # centreline x = 100 in the world is ego y = +1. The lane runs along world +y = ego +x, so
+    # its left is world -x = ego +y. Width 0 is unknown: the half width is measured from the
+    # lines, the painted line at world x = 102 (ego y = -1) on the right, the default 1.8 m
+    # on the left where there is none.
+    np.testing.assert_allclose(lane.left[:, 1] - 1.0, 1.8, atol=1e-5)
+    np.testing.assert_allclose(1.0 - lane.right[:, 1], 2.0, atol=1e-5)
+    assert lane.left_mark == lane.right_mark == "NONE"
     assert lanes[202].lane_type == "BIKE" and lanes[202].predecessors == (201,)
-    assert len(frame.map.crosswalks) == 1 and frame.map.drivable_areas == ()
+    [line] = frame.map.lines
+    assert line.mark == "SOLID_WHITE"
+    np.testing.assert_allclose(line.points[:, 1], -1.0, atol=1e-5)
+    assert len(frame.map.crosswalks) == 1
     np.testing.assert_allclose(frame.map.crosswalks[0][0], [5.0, 6.0], atol=1e-5)
+    # one drivable polygon per lane (no road edge: the lane itself)
+    assert len(frame.map.drivable_areas) == 2
+    assert shapely.Polygon(frame.map.drivable_areas[0]).contains(shapely.Point(0.0, 1.0))
 
 
 def test_standard_scenario_all_steps_and_validity():
@@ -352,10 +376,25 @@ def test_standard_lane_width_and_marks_are_used():
     lane["right_boundaries"] = [{"boundary_type": "ROAD_LINE_BROKEN_SINGLE_YELLOW"}]
     [(frame, _)] = sn.frames_from_scenario(scenario, "f.pkl")
     got = {lane.id: lane for lane in frame.map.lanes}[201]
-    # the centreline (world x = 100) is ego y = 1; the zero width entry falls back to 1.8 m
+    # the centreline (world x = 100) is ego y = 1; the zero width entry is measured: no line
+    # on the left, so the default 1.8 m
     np.testing.assert_allclose(got.left[:, 1] - 1.0, [1.0, 1.0, 1.8], atol=1e-5)
     np.testing.assert_allclose(1.0 - got.right[:, 1], 2.0, atol=1e-5)
-    assert got.left_mark == "SOLID_WHITE" and got.right_mark == "DASHED_YELLOW"
+    # the left boundary is line 300 of the file, drawn as itself; the right one names only a
+    # type, so the lane side carries it
+    assert got.left_mark == "NONE" and got.right_mark == "DASHED_YELLOW"
+    assert [line.mark for line in frame.map.lines] == ["SOLID_WHITE"]
+
+
+def test_implausible_lane_widths_are_measured_instead():
+    """Waymo's `width` is trusted only in [1, 2.5] m (larger ones are mostly wrong)."""
+    scenario = _standard_scenario()
+    lane = scenario["map_features"]["201"]
+    lane["width"] = np.array([[9.0, 2.0], [0.5, 40.0], [np.nan, 2.2]], np.float32)
+    [(frame, _)] = sn.frames_from_scenario(scenario, "f.pkl")
+    got = {lane.id: lane for lane in frame.map.lanes}[201]
+    np.testing.assert_allclose(got.left[:, 1] - 1.0, 1.8, atol=1e-5)  # default: no line left
+    np.testing.assert_allclose(1.0 - got.right[:, 1], [2.0, 2.0, 2.2], atol=1e-5)
 
 
 def test_non_integer_lane_ids_are_enumerated():
@@ -392,13 +431,45 @@ def test_unknown_track_type_is_counted_not_silent():
     assert "veh_a" not in set(back.track_id)
 
 
-def test_nan_position_names_file_and_field():
+def test_nan_in_an_actor_is_a_counted_drop_and_in_the_sdc_an_error():
     s = _standard_scenario()
     s["tracks"]["11"]["state"]["position"][1, 0] = np.nan
-    with pytest.raises(ValueError, match=r"sd_bad\.pkl: tracks\['11'\]\.state\.position\[1\]: NaN"):
+    [(frame, dropped)] = sn.frames_from_scenario(s, "sd_bad.pkl")
+    assert dropped["invalid:nan"] == 1 and "11" not in set(frame.track_id)
+    # NaN in a step that is not imported is nothing
+    [(frame, dropped)] = sn.frames_from_scenario(s, "sd_bad.pkl", 0)
+    assert "invalid:nan" not in dropped and "11" in set(frame.track_id)
+    s["tracks"]["AV"]["state"]["position"][1, 0] = np.nan
+    with pytest.raises(ValueError, match=r"sd_bad\.pkl: tracks\['AV'\]\.state\.position\[1\]: NaN"):
         sn.frames_from_scenario(s, "sd_bad.pkl")
-    # NaN in a step that is not imported is not an error
-    assert len(sn.frames_from_scenario(s, "sd_bad.pkl", 0)) == 1
+
+
+@pytest.mark.parametrize(
+    ("mutate", "key"),
+    [
+        (lambda st: st["11"]["state"]["width"].__setitem__(1, 0.0), "invalid:size"),
+        (lambda st: st["14"]["state"]["length"].__setitem__(1, -1.0), "invalid:size"),
+        (lambda st: st["11"]["state"]["heading"].__setitem__(1, np.inf), "invalid:nan"),
+        (lambda st: st["12"]["state"]["width"].__setitem__(1, np.nan), "invalid:nan"),
+    ],
+)
+def test_bad_actor_states_are_counted_drops(mutate, key):
+    s = _standard_scenario()
+    mutate(s["tracks"])
+    [(frame, dropped)] = sn.frames_from_scenario(s, "f.pkl")
+    assert dropped[key] == 1 and frame.num_actors == 2
+
+
+def test_length_shorter_than_width_is_sorted_and_counted():
+    s = _standard_scenario()
+    st = s["tracks"]["11"]["state"]
+    st["length"][:], st["width"][:] = 1.9, 4.4
+    s["tracks"]["AV"]["state"]["width"][:] = 5.0  # longer than its 4.5 m length
+    [(frame, dropped)] = sn.frames_from_scenario(s, "f.pkl")
+    assert dropped["quirk:length_lt_width"] == 2
+    np.testing.assert_allclose(frame.size[0], [1.9, 4.4])  # (width, length)
+    np.testing.assert_allclose(frame.ego_size, [4.5, 5.0])
+    np.testing.assert_allclose(frame.heading[0], 1.5 * np.pi, atol=1e-6)  # unchanged
 
 
 @pytest.mark.parametrize(
@@ -418,17 +489,26 @@ def test_nan_position_names_file_and_field():
             r"\['11'\]\.state\.heading: has 2 steps, scenario length is 3",
         ),
         (
-            lambda s: s["tracks"]["11"]["state"]["width"].__setitem__(1, 0.0),
-            r"\['11'\]\.state\.width/length\[1\]: box size must be positive",
+            lambda s: s["tracks"]["AV"]["state"]["width"].__setitem__(1, 0.0),
+            r"\['AV'\]\.state\.width/length\[1\]: box size must be positive",
         ),
         (
-            lambda s: s["tracks"]["14"]["state"]["length"].__setitem__(1, -1.0),
-            r"\['14'\]\.state\.width/length\[1\]",
+            lambda s: s["tracks"]["AV"]["state"]["heading"].__setitem__(1, np.inf),
+            r"\['AV'\]\.state\.heading\[1\]: NaN or inf",
         ),
         (
-            lambda s: s["tracks"]["11"]["state"]["heading"].__setitem__(1, np.inf),
-            r"\['11'\]\.state\.heading\[1\]: NaN or inf",
+            lambda s: s["tracks"]["11"]["state"].update(length=np.ones((3, 2))),
+            r"\['11'\]\.state\.length: expected shape \[N\] or \[N, 1\], got \(3, 2\)",
         ),
+        (
+            lambda s: s["tracks"]["11"]["state"].update(valid=np.array([1.0, np.nan, 1.0])),
+            r"\['11'\]\.state\.valid: NaN",
+        ),
+        (
+            lambda s: (s["metadata"].pop("sdc_id"), s.update(sdc_track_index="nobody")),
+            r"f\.pkl: sdc_track_index: 'nobody' names no track",
+        ),
+        (lambda s: s.update(metadata=[1]), r"f\.pkl: metadata: expected a dict"),
         (
             lambda s: s["tracks"]["AV"]["state"]["valid"].__setitem__(1, False),
             r"\['AV'\]\.state\.valid\[1\]: the SDC",
@@ -576,7 +656,7 @@ def test_rotated_ego_frame_round_trip():
         st["velocity"][:] = (st["velocity"].astype(np.float64) @ rot.T).astype(np.float32)
         st["heading"][:] = np.float32(st["heading"][0] + theta)
     for feature in s["map_features"].values():
-        for key in ("scenegen_left", "scenegen_right", "scenegen_polygon"):
+        for key in ("scenegen_left", "scenegen_right", "scenegen_polygon", "scenegen_points"):
             if key in feature:
                 feature[key] = feature[key] @ rot.T + shift
     # the world is now city_from_ego_original @ inverse(world_from_ego)
@@ -611,3 +691,337 @@ def test_real_argoverse_scene_round_trip(all_frames, tmp_path):
         sn.write_scenario(sn.scenario_from_frame(frame, frame.scene_id), path)
         [(back, dropped)] = sn.frames_from_scenario(sn.read_scenario(path), str(path))
         assert sn.frame_differences(frame, back) == [] and not dropped
+
+
+# ----------------------------------------------------------------------------- real converters
+
+RASTER_SIZE, RASTER_M_PER_PX = 80, 1.0
+
+
+def _raster_at(raster: np.ndarray, channel: str, xy) -> float:
+    """The raster's value in `channel` at the pixel holding ego-frame point xy (m)."""
+    half = RASTER_SIZE * RASTER_M_PER_PX / 2
+    row = int((half - xy[1]) // RASTER_M_PER_PX)
+    col = int((xy[0] + half) // RASTER_M_PER_PX)
+    return float(raster[row, col, ALL_MAP_CHANNELS.index(channel)])
+
+
+@pytest.mark.parametrize("name", sorted(fx.BUILDERS))
+def test_converter_output_imports(name):
+    """Each converter's layout imports: classes, ego-frame states, lines as boundaries, roads."""
+    f = fx.BUILDERS[name]()
+    source = f"sd_{name}.pkl"
+    [(frame, dropped)] = sn.frames_from_scenario(f.scenario, source)
+
+    assert frame.scene_id.endswith(f"/{f.ref}")
+    assert dropped == f.dropped
+    assert set(frame.track_id) == set(f.actors)
+    for i, tid in enumerate(frame.track_id):
+        want = f.actors[str(tid)]
+        assert frame.cls[i] == want.cls, tid
+        np.testing.assert_allclose(frame.position[i], want.xy, atol=2e-3, err_msg=str(tid))
+        np.testing.assert_allclose(frame.velocity[i], want.velocity, atol=2e-3, err_msg=str(tid))
+        np.testing.assert_allclose(frame.size[i], want.size, atol=1e-5, err_msg=str(tid))
+        if want.cls != PEDESTRIAN:
+            dh = np.angle(np.exp(1j * (frame.heading[i] - want.heading)))
+            assert abs(dh) < 1e-4, tid
+    np.testing.assert_allclose(frame.ego_size, f.ego_size, atol=1e-5)
+    np.testing.assert_allclose(frame.ego_velocity, f.ego_velocity, atol=2e-3)
+    np.testing.assert_allclose(frame.city_from_ego[:2, 2], f.ego_xy, atol=2e-3)
+
+    vmap = frame.map
+    assert len(vmap.lanes) >= 2 and vmap.lines and vmap.drivable_areas
+    raster = rasterize_map(vmap, RASTER_SIZE, RASTER_M_PER_PX)
+    for xy in f.crossable:
+        assert _raster_at(raster, "lane_boundary_crossable", xy) == 1.0, xy
+    for xy in f.uncrossable:
+        assert _raster_at(raster, "lane_boundary_uncrossable", xy) == 1.0, xy
+    # the road is drivable (both lanes), the ground beyond its edges is not
+    for xy in ((0.0, 0.0), (20.0, 3.5), (-30.0, 1.0)):
+        assert _raster_at(raster, "drivable_area", xy) == 1.0, xy
+    for xy in ((0.0, -6.0), (-20.0, -4.0)):
+        assert _raster_at(raster, "drivable_area", xy) == 0.0, xy
+    # lanes follow the ego's direction
+    assert _raster_at(raster, "lane_orientation_cos", (0.0, 0.0)) > 0.99
+    assert sn.scenario_sample_rate_hz(f.scenario) == pytest.approx(f.sample_rate_hz, rel=1e-4)
+
+
+def test_converter_lane_outlines():
+    """Lane outlines from the converters' widths (Waymo) and lane polygons (nuScenes, nuPlan)."""
+    for name in ("waymo", "nuscenes", "nuplan"):
+        [(frame, _)] = sn.frames_from_scenario(fx.BUILDERS[name]().scenario, name)
+        for lane in frame.map.lanes[:2]:
+            y = lane.centerline[:, 1].mean()
+            assert y == pytest.approx(0.0, abs=1e-3) or y == pytest.approx(3.5, abs=1e-3)
+            # (interior points: a ray from a lane's end along its polygon's side finds no edge)
+            left, right = lane.left[1:-1, 1] - y, y - lane.right[1:-1, 1]
+            np.testing.assert_allclose(left, 1.75, atol=2e-3, err_msg=name)
+            np.testing.assert_allclose(right, 1.75, atol=2e-3, err_msg=name)
+    # nuScenes' lane connectors are intersection lanes; the straight lanes are not
+    [(frame, _)] = sn.frames_from_scenario(fx.nuscenes().scenario, "n")
+    assert [lane.is_intersection for lane in frame.map.lanes] == [False, False, True]
+    assert frame.map.lanes[0].successors == (2,) and frame.map.lanes[2].predecessors == (0,)
+    # Argoverse 2's lane ids are integers; links to lanes outside the map are kept
+    [(frame, _)] = sn.frames_from_scenario(fx.argoverse2().scenario, "a")
+    assert sorted(lane.id for lane in frame.map.lanes) == [2000, 2001]
+    assert {lane.id: lane for lane in frame.map.lanes}[2000].successors == (2002,)
+
+
+@pytest.mark.parametrize(
+    ("name", "stride", "steps"),
+    [
+        ("waymo", 10, list(range(0, 91, 10))),
+        ("nuscenes", 5, list(range(0, 41, 5))),
+        ("argoverse2", 25, [0, 25, 50, 75, 100]),
+        ("nuscenes_keyframes", 3, [0, 3, 6]),
+    ],
+)
+def test_stride_frames(name, stride, steps):
+    f = fx.BUILDERS[name]()
+    got = sn.frames_from_scenario(f.scenario, "s.pkl", stride=stride)
+    assert [int(g.frame.scene_id.rsplit("/", 1)[1]) for g in got] == steps
+    # the velocity quirk is counted once per file, in the first frame
+    mismatch = [g.dropped["quirk:velocity_mismatch"] for g in got]
+    assert mismatch == [f.dropped["quirk:velocity_mismatch"]] + [0] * (len(got) - 1)
+    for g in got:  # the "late" vehicle is an actor from its first valid step on
+        late = [t for t in g.frame.track_id if t not in f.actors]
+        assert len(late) == int(int(g.frame.scene_id.rsplit("/", 1)[1]) >= f.ref + 3)
+
+
+def test_stride_skips_steps_where_the_sdc_is_invalid_and_checks_arguments():
+    s = fx.waymo().scenario
+    sdc = s["tracks"][s["metadata"]["sdc_id"]]["state"]
+    sdc["valid"][20] = False
+    got = sn.frames_from_scenario(s, "s.pkl", stride=10)
+    assert [g.frame.scene_id.rsplit("/", 1)[1] for g in got] == [
+        "0", "10", "30", "40", "50", "60", "70", "80", "90"
+    ]  # fmt: skip
+    with pytest.raises(ValueError, match=r"s\.pkl: stride: give only one"):
+        sn.frames_from_scenario(s, "s.pkl", 3, stride=10)
+    with pytest.raises(ValueError, match=r"s\.pkl: stride: expected a positive integer"):
+        sn.frames_from_scenario(s, "s.pkl", stride=0)
+
+
+def test_read_scenarionet_with_stride(tmp_path):
+    for name in ("waymo", "nuplan"):
+        sn.write_scenario(fx.BUILDERS[name]().scenario, tmp_path / f"sd_{name}.pkl")
+    got = list(sn.read_scenarionet(tmp_path, stride=20))
+    assert len(got) == 5 + 2  # Waymo: 0..80 of 91 steps; nuPlan: 0, 20 of 40
+
+
+def test_sdc_locations():
+    """metadata.sdc_id wins; else sdc_track_index as a track id (int or str), else an index."""
+    s = fx.waymo().scenario
+    sdc_id = s["metadata"]["sdc_id"]
+    [(want, _)] = sn.frames_from_scenario(s, "w")
+    del s["metadata"]["sdc_id"]  # metadata.sdc_track_index: the SDC's index in tracks
+    [(frame, _)] = sn.frames_from_scenario(s, "w")
+    np.testing.assert_allclose(frame.city_from_ego, want.city_from_ego)
+    del s["metadata"]["sdc_track_index"]
+    for value in (int(sdc_id), sdc_id):  # top-level, a track id
+        s["sdc_track_index"] = value
+        [(frame, _)] = sn.frames_from_scenario(s, "w")
+        np.testing.assert_allclose(frame.city_from_ego, want.city_from_ego)
+    s["sdc_track_index"] = list(s["tracks"]).index(sdc_id)  # top-level, an index
+    [(frame, _)] = sn.frames_from_scenario(s, "w")
+    np.testing.assert_allclose(frame.city_from_ego, want.city_from_ego)
+    del s["sdc_track_index"]
+    with pytest.raises(ValueError, match=r"w: metadata\.sdc_id: missing"):
+        sn.frames_from_scenario(s, "w")
+
+
+def test_sample_rate_and_velocity_mismatch():
+    assert sn.scenario_sample_rate_hz({"tracks": {}}) is None
+    assert sn.scenario_sample_rate_hz({"ts": [0.0, 0.076, 0.176, 0.276]}) == pytest.approx(10.0)
+    assert sn.scenario_sample_rate_hz({"metadata": {"ts": np.zeros(5)}}) is None
+    # velocities that disagree with the positions: counted once, kept as they are
+    f = fx.waymo()
+    for track in f.scenario["tracks"].values():
+        track["state"]["velocity"] *= -1
+    got = sn.frames_from_scenario(f.scenario, "w.pkl", stride=30)
+    assert [g.dropped["quirk:velocity_mismatch"] for g in got] == [1, 0, 0, 0]
+    np.testing.assert_allclose(got[0].frame.ego_velocity, [-5.0, 0.0], atol=1e-3)
+
+
+def test_malformed_and_unknown_map_features_are_counted():
+    s = fx.waymo().scenario
+    features = s["map_features"]
+    feature = {"polygon": np.zeros((4, 3))}
+    feature["type"] = feature  # a self-reference: never recursed into
+    features["900"] = feature
+    features["901"] = {"type": 7, "polyline": np.zeros((2, 3))}
+    features["902"] = {"type": "ROAD_EDGE_SIDEWALK", "polygon": np.zeros((4, 3))}
+    features["903"] = {"type": "CROSSWALK", "polygon": np.ones((2, 3))}  # too few points
+    features["904"] = {"type": "ROAD_LINE_SOLID_SINGLE_WHITE", "polyline": np.ones((3, 3))}
+    features["905"] = {"type": "UNKNOWN", "polyline": fx.xyz(fx.line_y(-9.0))}  # a line
+    [(frame, dropped)] = sn.frames_from_scenario(s, "w.pkl")
+    assert dropped["map:malformed_type"] == 2
+    assert dropped["map:ROAD_EDGE_SIDEWALK"] == 1
+    assert dropped["map:degenerate_crosswalk"] == 1 and dropped["map:degenerate_line"] == 1
+    assert [line.mark for line in frame.map.lines].count("UNKNOWN") == 1
+
+
+def test_map_geometry_nan_names_the_field():
+    s = fx.nuscenes().scenario
+    s["map_features"]["lane_divider_tok"]["polyline"][3, 1] = np.nan
+    with pytest.raises(ValueError, match=r"map_features\['lane_divider_tok'\]\.polyline: NaN"):
+        sn.frames_from_scenario(s, "n.pkl")
+
+
+def test_imported_converter_frame_round_trips_through_export(tmp_path):
+    """A frame imported from a converter's file (lines included) exports and imports unchanged."""
+    [(frame, _)] = sn.frames_from_scenario(fx.argoverse2().scenario, "a.pkl")
+    assert frame.map.lines
+    path = tmp_path / "x.pkl"
+    sn.write_scenario(sn.scenario_from_frame(frame, frame.scene_id), path)
+    [(back, dropped)] = sn.frames_from_scenario(sn.read_scenario(path), str(path))
+    assert sn.frame_differences(frame, back, atol=1e-4) == [] and not dropped
+
+
+# ----------------------------------------------------------------------------- real WOMD pickles
+
+WOMD_STRIDE = 10
+
+
+def _womd_sdc(scenario: dict):
+    """The SDC's key in `tracks`: metadata.sdc_id (S1, S2) or the top-level sdc_track_index
+    (S3: an int, and so are S3's track keys; S4: a str)."""
+    meta = scenario.get("metadata", {})
+    return meta["sdc_id"] if "sdc_id" in meta else scenario["sdc_track_index"]
+
+
+@pytest.fixture(scope="module")
+def womd():
+    """{file name: (scenario, stride frames)} of every womd_mini ScenarioNet pickle, read once."""
+    paths = sorted(glob.glob(os.path.join(WOMD_ROOT, "*", "*.pkl")))
+    if not paths:
+        pytest.fail(f"real data missing: {WOMD_ROOT} (../shared must sit beside the repo)")
+    out = {}
+    for path in paths:
+        scenario = sn.read_scenario(path)
+        out[os.path.basename(path)] = (
+            scenario,
+            sn.frames_from_scenario(scenario, path, stride=WOMD_STRIDE),
+        )
+    return out
+
+
+def test_womd_every_pickle_imports_every_stride_frame(womd):
+    assert len(womd) == 18
+    for name, (scenario, frames) in womd.items():
+        tracks = scenario["tracks"]
+        sdc = tracks[_womd_sdc(scenario)]["state"]
+        n = len(sdc["position"])
+        valid = np.asarray(sdc["valid"]).reshape(n) != 0
+        want = [t for t in range(0, n, WOMD_STRIDE) if valid[t]]
+        assert [int(g.frame.scene_id.rsplit("/", 1)[1]) for g in frames] == want, name
+        assert sn.scenario_sample_rate_hz(scenario) == pytest.approx(10.0, rel=0.01), name
+
+
+def test_womd_actor_counts_equal_the_files_tracks(womd):
+    """Per step and class: actors == tracks valid there with that type (the SDC aside)."""
+    cls_of = {"VEHICLE": VEHICLE, "PEDESTRIAN": PEDESTRIAN, "CYCLIST": BICYCLIST}
+    for name, (scenario, frames) in womd.items():
+        sdc = _womd_sdc(scenario)
+        others = [tr for tid, tr in scenario["tracks"].items() if tid != sdc]
+        for frame, dropped in frames:
+            t = int(frame.scene_id.rsplit("/", 1)[1])
+            want = collections.Counter(
+                tr["type"] for tr in others if np.asarray(tr["state"]["valid"]).reshape(-1)[t]
+            )
+            got = collections.Counter(int(c) for c in frame.cls)
+            assert got == {cls_of[k]: v for k, v in want.items() if k in cls_of}, (name, t)
+            assert not any(k.startswith(("invalid:", "type:")) for k in dropped), (name, dropped)
+
+
+def test_womd_headings_agree_with_velocities_and_sizes_are_plausible(womd):
+    for name, (_, frames) in womd.items():
+        angles, lengths = [], []
+        for frame, _ in frames:
+            veh = frame.cls == VEHICLE
+            moving = veh & (np.linalg.norm(frame.velocity, axis=1) > 2.0)
+            v = frame.velocity[moving]
+            angles.append(
+                np.angle(np.exp(1j * (frame.heading[moving] - np.arctan2(v[:, 1], v[:, 0]))))
+            )
+            lengths.append(frame.size[veh, 1])
+            assert np.all(frame.size[veh, 1] >= frame.size[veh, 0])
+        assert np.degrees(np.median(np.abs(np.concatenate(angles)))) < 5.0, name
+        assert 3.5 < np.median(np.concatenate(lengths)) < 6.0, name
+        assert not any(d["quirk:velocity_mismatch"] for _, d in frames), name
+
+
+def test_womd_maps(womd):
+    for name, (scenario, frames) in womd.items():
+        frame, dropped = frames[0]
+        vmap = frame.map
+        assert vmap.lanes and vmap.lines and vmap.drivable_areas, name
+        marks = collections.Counter(line.mark for line in vmap.lines)
+        assert marks[ROAD_EDGE] > 0 and sum(marks.values()) > marks[ROAD_EDGE], name
+        features = scenario["map_features"].values()
+        types = collections.Counter(f["type"] for f in features if isinstance(f["type"], str))
+        # every crosswalk and driveway is kept; one drivable polygon per lane plus driveways
+        assert len(vmap.crosswalks) == types["CROSSWALK"] + types["CROSS_WALK"], name
+        assert len(vmap.drivable_areas) == len(vmap.lanes) + types["DRIVEWAY"], name
+        assert dropped["map:malformed_type"] == sum(
+            not isinstance(f["type"], str) for f in features
+        )
+        for kind in ("STOP_SIGN", "stop_sign", "SPEED_BUMP"):
+            assert dropped[f"map:{kind}"] == types[kind], (name, kind)
+        # the ego stands on the drivable surface
+        around = [p for p in vmap.drivable_areas if np.all(p.min(0) <= 0) and np.all(p.max(0) >= 0)]
+        assert any(shapely.Polygon(p).contains(shapely.Point(0.0, 0.0)) for p in around), name
+
+
+# ----------------------------------------------------------------------------- MetaDrive classes
+
+
+_SD_GLOBAL = b"cmetadrive.scenario.scenario_description\nScenarioDescription\n"  # GLOBAL
+_SD_ITEMS = b"(X\x02\x00\x00\x00idX\x03\x00\x00\x00abcX\x06\x00\x00\x00tracks}u."
+
+
+@pytest.mark.parametrize(
+    ("payload", "want"),
+    [
+        # protocol 2: GLOBAL, EMPTY_TUPLE, NEWOBJ (cls.__new__(cls)), MARK, items, SETITEMS
+        (b"\x80\x02" + _SD_GLOBAL + b")\x81" + _SD_ITEMS, {"id": "abc", "tracks": {}}),
+        # protocol 4: the same class by STACK_GLOBAL (what Python 3 writes)
+        (
+            b"\x80\x04\x8c'metadrive.scenario.scenario_description\x94"
+            b"\x8c\x13ScenarioDescription\x94\x93)\x81" + _SD_ITEMS,
+            {"id": "abc", "tracks": {}},
+        ),
+        # protocol 0: GLOBAL called with no arguments
+        (_SD_GLOBAL + b"(tR.", {}),
+    ],
+)
+def test_metadrive_scenario_description_loads_as_a_dict(tmp_path, payload, want):
+    """Older ScenarioNet files pickled MetaDrive's ScenarioDescription (a dict subclass)."""
+    path = tmp_path / "sd_old.pkl"
+    path.write_bytes(payload)
+    got = load_pickle(path)
+    assert type(got) is dict and got == want
+
+
+@pytest.mark.parametrize(
+    ("payload", "name"),
+    [
+        (b"\x80\x02c__main__\nFoo\n)\x81.", "__main__.Foo"),
+        (b"cmetadrive.scenario.scenario_description\nOther\n(tR.", "scenario_description.Other"),
+        (b"cmetadrive.type\nMetaDriveType\n(tR.", "metadrive.type.MetaDriveType"),
+    ],
+)
+def test_other_classes_stay_refused(tmp_path, payload, name):
+    path = tmp_path / "p.pkl"
+    path.write_bytes(payload)
+    with pytest.raises(UnsafePickleError, match=name.replace(".", r"\.")):
+        load_pickle(path)
+
+
+def test_os_system_global_is_refused_and_runs_nothing(tmp_path):
+    marker = tmp_path / "ran"
+    path = tmp_path / "p.pkl"
+    path.write_bytes(b"cos\nsystem\n(S'touch " + str(marker).encode() + b"'\ntR.")
+    with pytest.raises(UnsafePickleError, match=r"os\.system"):
+        load_pickle(path)
+    assert not marker.exists()

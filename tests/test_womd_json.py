@@ -17,8 +17,6 @@ from scenegen_jax.data.surface import DEFAULT_HALF_WIDTH_M, Centerline, outline_
 from scenegen_jax.data.vector_map import ROAD_EDGE, RoadLine
 from scenegen_jax.scene import BICYCLIST, PEDESTRIAN, VEHICLE
 
-
-
 # ---------------------------------------------------------------- synthetic layouts
 
 

@@ -83,8 +83,10 @@ def prepare(
             reason = result.error.split(":", 1)[0]
             bad[reason] += 1
             writer.summary.bad_file_list.append({"file": result.path, "error": result.error})
-            log.warning("skipped %s", result.error if result.path in result.error else
-                        f"{result.path}: {result.error}")
+            log.warning(
+                "skipped %s",
+                result.error if result.path in result.error else f"{result.path}: {result.error}",
+            )
         for enc in result.frames:
             writer.add(enc)
         drops.update(result.drops)

@@ -2,7 +2,10 @@
 
 ScenarioNet stores scenarios as pickles. A plain `pickle.load` runs whatever callable the file
 names (`os.system`, `builtins.eval`, ...), so every pickle in this project goes through
-`load_pickle`, whose unpickler resolves only an explicit allow-list of globals.
+`load_pickle`, whose unpickler resolves only an explicit allow-list of globals. The one class
+outside numpy and builtins it accepts is MetaDrive's `ScenarioDescription` (module
+`metadrive.scenario.scenario_description`), which older ScenarioNet files pickled: it is a
+dict subclass, and it is read as a plain `dict` (nothing of MetaDrive is imported or run).
 """
 
 from __future__ import annotations
@@ -62,6 +65,9 @@ _PLAIN_GLOBALS: dict[tuple[str, str], Any] = {
     ("collections", "OrderedDict"): collections.OrderedDict,
     ("collections", "defaultdict"): collections.defaultdict,
     ("collections", "Counter"): collections.Counter,
+    # Older ScenarioNet / MetaDrive files pickled the scenario as MetaDrive's
+    # `ScenarioDescription`, a dict subclass with no state of its own: read as a plain dict.
+    ("metadrive.scenario.scenario_description", "ScenarioDescription"): dict,
 }
 # Builtin containers and plain value types; nothing that evaluates, imports or reflects.
 for _name in (
@@ -112,7 +118,8 @@ class _RestrictedUnpickler(pickle.Unpickler):
 
 
 def load_pickle(path: str | os.PathLike) -> Any:
-    """Loads a pickle that may contain only numpy arrays, numpy scalars and builtin containers.
+    """Loads a pickle that may contain only numpy arrays, numpy scalars and builtin containers
+    (and MetaDrive `ScenarioDescription`s, which load as plain dicts).
 
     Raises:
       FileNotFoundError: no such file.

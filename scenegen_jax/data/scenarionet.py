@@ -5,9 +5,26 @@ A ScenarioNet scenario is a dict with the top-level keys `id`, `version`, `lengt
 right-handed world frame in metres (x, y, z), headings rad, velocities m/s in that frame.
 
 Import (`frames_from_scenario`, `read_scenarionet`) builds one `Frame` per requested step in
-the SDC's ego frame. Track types VEHICLE / PEDESTRIAN / CYCLIST map to our classes; every other
-type is dropped and counted in a `Counter` (key: "type:<TYPE>"), as are map features that the
-VectorMap cannot hold (key: "map:<TYPE>"). Nothing is dropped silently; malformed input raises
+the SDC's ego frame. It accepts what ScenarioNet's converters (Waymo, nuScenes, nuPlan,
+Argoverse 2, in their current and older versions) and MetaDrive's older Waymo pickles write,
+not only our own exports; every difference is detected from the data:
+
+- per-step arrays stored as [T] or [T, 1] (nuScenes and nuPlan write `length`, `width`,
+  `height` as [T, 1]; MetaDrive's old Waymo pickles `heading` and `valid` as [T, 1]);
+- box sizes as `length` / `width` or as `size` [T, 3] = (length, width, height);
+- `valid` as bool or as 0/1 floats;
+- the SDC as `metadata.sdc_id`, else a `sdc_track_index` (top level or in `metadata`) that
+  is a track id (int or str) or, failing that, an index into `tracks`;
+- time stamps in `metadata.ts` or a top-level `ts` (`scenario_sample_rate_hz`);
+- no `metadata` and no `length` at all (old MetaDrive Waymo pickles).
+
+Track types VEHICLE / PEDESTRIAN / CYCLIST map to our classes; every other type (OTHER,
+TRAFFIC_CONE, TRAFFIC_BARRIER, UNSET, ...) is dropped and counted in a `Counter` (key:
+"type:<TYPE>"), as are actors with NaN/inf in a valid step ("invalid:nan") and vehicles or
+cyclists with a non-positive box size ("invalid:size"). Converter quirks are detected and
+counted ("quirk:<name>"), never trusted blindly; see `frames_from_scenario`. Map features the
+VectorMap cannot hold are counted as "map:<TYPE>". Nothing is dropped silently; structural
+problems (missing tracks or SDC, wrong shapes, NaN in the SDC or in map geometry) raise
 ValueError naming the file and the field.
 
 Export (`scenario_from_frame`, `write_scenario`, `write_dataset`) writes a one-step scenario in
@@ -15,14 +32,14 @@ the ego frame. Standard keys are filled as ScenarioNet's converters fill them, s
 replay it; what the standard keys cannot carry (exact lane boundaries, BUS lanes, mark types,
 intersection flags, the ego pose in the city) goes into extra keys prefixed `scenegen_`, which
 take precedence on import, so export -> import is lossless up to float32 rounding of tracks.
-Files from real converters carry only the standard keys: a lane is then a centreline (plus maybe
-a polygon and per-point `width`) and its boundaries are rebuilt by offsetting the centreline by
-the `width` entries where positive, else by `DEFAULT_HALF_WIDTH_M`.
+Files from real converters carry only the standard keys; their maps are read as described in
+`map_from_features`.
 """
 
 from __future__ import annotations
 
 import collections
+import dataclasses
 import os
 import re
 from collections.abc import Iterator, Mapping, Sequence
@@ -32,13 +49,33 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from scenegen_jax import __version__
+from scenegen_jax.data import surface
 from scenegen_jax.data.frame import Frame
 from scenegen_jax.data.safe_pickle import dump_pickle, load_pickle
-from scenegen_jax.data.surface import offset_centerline
-from scenegen_jax.data.vector_map import Lane, VectorMap, resample_polyline, rotation_matrix
+from scenegen_jax.data.surface import Centerline, normals, outline_lanes, ray_distances
+from scenegen_jax.data.vector_map import (
+    ROAD_EDGE,
+    Lane,
+    RoadLine,
+    VectorMap,
+    resample_polyline,
+    rotation_matrix,
+)
 from scenegen_jax.scene import BICYCLIST, NUM_CLASSES, PEDESTRIAN, VEHICLE
 
-DEFAULT_HALF_WIDTH_M = 1.8
+DEFAULT_HALF_WIDTH_M = surface.DEFAULT_HALF_WIDTH_M
+# A converter's per-point lane `width` (half widths to the left / right boundary) is used only
+# in this range; elsewhere the half width is measured from the map's lines. On the WOMD
+# ScenarioNet pickles in ../shared/data/womd_mini, half widths <= 2.5 m agree with the
+# perpendicular distance to the nearest line within 2 cm (median); larger ones (about a quarter
+# of them, up to 177 m) are off by about 3 m, because the Waymo converter matches boundary
+# points by nearest index and copies one side's width to the other.
+MIN_GIVEN_HALF_WIDTH_M = surface.MIN_HALF_WIDTH_M
+MAX_GIVEN_HALF_WIDTH_M = 2.5
+DEFAULT_STEP_S = 0.1  # when a file has no usable `ts`
+MOVING_MPS = 2.0
+VELOCITY_MISMATCH_REL_ERR = 0.3
+MIN_MOVING_SAMPLES = 10
 SUMMARY_FILE = "dataset_summary.pkl"
 MAPPING_FILE = "dataset_mapping.pkl"
 TOP_LEVEL_KEYS = ("id", "version", "length", "tracks", "map_features", "metadata")
@@ -61,6 +98,18 @@ LANE_FEATURE_TYPES = frozenset(
         "LANE_BIKE_LANE",
     }
 )
+# Keys only a lane has: MetaDrive's old Waymo pickles type lanes of unknown type "UNKNOWN",
+# the same string Waymo's unknown road lines and road edges get.
+_LANE_ONLY_KEYS = ("entry_lanes", "exit_lanes", "left_boundaries", "right_boundaries")
+# Kerbs and road edges (MetaDrive's BOUNDARY_LINE is "ROAD_EDGE_BOUNDARY").
+ROAD_EDGE_FEATURE_TYPES = frozenset(
+    {"ROAD_EDGE_BOUNDARY", "ROAD_EDGE_MEDIAN", "ROAD_EDGE_UNKNOWN", "BOUNDARY_LINE"}
+)
+# The nuScenes, nuPlan and Argoverse 2 converters write the outline of the drivable area as
+# features "boundary_<n>" typed ROAD_LINE_SOLID_SINGLE_WHITE: they are road edges.
+DRIVABLE_OUTLINE_ID_PREFIX = "boundary_"
+CROSSWALK_FEATURE_TYPES = frozenset({"CROSSWALK", "CROSS_WALK"})
+DRIVEWAY_FEATURE_TYPES = frozenset({"DRIVEWAY"})
 # Argoverse 2 mark names (our Lane.left_mark / right_mark) -> ScenarioNet line types, as in
 # ScenarioNet's own Argoverse 2 converter.
 LINE_TYPE_FROM_MARK: dict[str, str] = {
@@ -92,7 +141,9 @@ MARK_FROM_LINE_TYPE: dict[str, str] = {
 
 
 class ImportedFrame(NamedTuple):
-    """One imported frame and what was dropped from it ("type:<TYPE>" / "map:<TYPE>" -> count)."""
+    """One imported frame and what was dropped from it, or found odd in it: a Counter of
+    "type:<TYPE>", "invalid:<why>", "map:<TYPE>" and "quirk:<name>" keys (see
+    `frames_from_scenario`)."""
 
     frame: Frame
     dropped: collections.Counter
@@ -127,6 +178,34 @@ def _array(
     return arr
 
 
+def _series(value: Any, source: str, field: str) -> np.ndarray:
+    """[T] float64 of a per-step scalar stored as [T] or [T, 1]."""
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise _err(source, field, f"not a numeric array ({e})") from e
+    if arr.ndim == 2 and arr.shape[1] == 1:
+        arr = arr[:, 0]
+    if arr.ndim != 1:
+        raise _err(source, field, f"expected shape [N] or [N, 1], got {arr.shape}")
+    return arr
+
+
+def _valid_mask(value: Any, source: str, field: str) -> np.ndarray:
+    """[T] bool of a `valid` array stored as bool or 0/1 numbers, [T] or [T, 1]."""
+    arr = np.asarray(value)
+    if arr.dtype != bool:
+        arr = _series(value, source, field)
+        if not np.all(np.isfinite(arr)):
+            raise _err(source, field, "NaN or inf")
+        return arr != 0
+    if arr.ndim == 2 and arr.shape[1] == 1:
+        arr = arr[:, 0]
+    if arr.ndim != 1:
+        raise _err(source, field, f"expected shape [N] or [N, 1], got {arr.shape}")
+    return arr
+
+
 def _polyline(value: Any, source: str, field: str, min_points: int = 1) -> np.ndarray:
     """[P, 2] float64 from a [P, 2] or [P, 3] polyline; NaN/inf or too few points raise."""
     pts = _array(value, source, field, 2, min_cols=2)[:, :2]
@@ -137,66 +216,97 @@ def _polyline(value: Any, source: str, field: str, min_points: int = 1) -> np.nd
     return pts
 
 
+def _geometry(feature: Mapping, keys: Sequence[str], source: str, field: str) -> np.ndarray:
+    """[P, 2] points of the first of `keys` the feature has (NaN/inf raise; P may be 0)."""
+    for key in keys:
+        if key in feature:
+            pts = _array(feature[key], source, f"{field}.{key}", 2, min_cols=2)[:, :2]
+            if not np.all(np.isfinite(pts)):
+                raise _err(source, f"{field}.{key}", "NaN or inf coordinate")
+            return pts
+    raise _err(source, f"{field}.{keys[0]}", "missing")
+
+
 def _canonical_int(key: Any) -> int | None:
     s = str(key)
     return int(s) if re.fullmatch(r"-?[1-9][0-9]*|0", s) else None
 
 
+def _keep_mask(points: np.ndarray) -> np.ndarray:
+    """[P] bool: drop points that repeat the previous one."""
+    if len(points) == 0:
+        return np.zeros(0, bool)
+    return np.concatenate([[True], np.linalg.norm(np.diff(points, axis=0), axis=1) > 1e-9])
+
+
 def _dedupe(points: np.ndarray) -> np.ndarray:
-    keep = np.concatenate([[True], np.linalg.norm(np.diff(points, axis=0), axis=1) > 1e-9])
-    return points[keep]
+    return points[_keep_mask(points)]
 
 
-def _lane_half_widths(feature: Mapping, n: int, source: str, field: str) -> tuple[np.ndarray, ...]:
-    """Per-point (left, right) half widths from a standard `width` [P, 2] entry, else default."""
-    left = np.full(n, DEFAULT_HALF_WIDTH_M)
-    right = np.full(n, DEFAULT_HALF_WIDTH_M)
-    width = feature.get("width")
-    if width is None:
-        return left, right
-    w = _array(width, source, f"{field}.width", 2, min_cols=2)
-    if len(w) != n:  # not aligned with the (deduplicated) centreline: ignore, use the default
-        return left, right
-    ok = np.isfinite(w) & (w > 0)
-    left[ok[:, 0]] = w[ok[:, 0], 0]
-    right[ok[:, 1]] = w[ok[:, 1], 1]
-    return left, right
+def _ring(points: np.ndarray) -> np.ndarray:
+    """A polygon outline without repeated points. An early nuScenes converter wrote each lane
+    outline twice (z = 0.1, then z = 0): such a doubled ring is read once."""
+    n = len(points)
+    if n >= 6 and n % 2 == 0 and np.allclose(points[: n // 2], points[n // 2 :]):
+        points = points[: n // 2]
+    return _dedupe(points)
 
 
-def _mark_from_boundaries(entries: Any, features: Mapping) -> str:
-    """The Argoverse 2 mark name of a lane side from ScenarioNet `left/right_boundaries`."""
+def _distinct_points(ring: np.ndarray) -> int:
+    closed = len(ring) > 1 and np.allclose(ring[0], ring[-1])
+    return len(ring) - int(closed)
+
+
+def _feature_kind(fid: Any, ftype: str, feature: Mapping) -> str | None:
+    """How a map feature is read: "lane", "line", "edge", "crosswalk", "driveway", our own
+    "lane_boundary" / "drivable_area" / "own_line" extras, or None (not representable)."""
+    kind = feature.get("scenegen_kind")
+    if kind in ("lane_boundary", "drivable_area"):
+        return kind
+    if kind == "line":
+        return "own_line"
+    if ftype in LANE_FEATURE_TYPES or (
+        ftype == "UNKNOWN" and any(k in feature for k in _LANE_ONLY_KEYS)
+    ):
+        return "lane"
+    if ftype in ROAD_EDGE_FEATURE_TYPES:
+        return "edge"
+    if ftype in MARK_FROM_LINE_TYPE or ftype.startswith("ROAD_LINE_") or ftype == "UNKNOWN":
+        return "edge" if str(fid).startswith(DRIVABLE_OUTLINE_ID_PREFIX) else "line"
+    if ftype in CROSSWALK_FEATURE_TYPES:
+        return "crosswalk"
+    if ftype in DRIVEWAY_FEATURE_TYPES:
+        return "driveway"
+    return None
+
+
+def _mark_from_boundaries(entries: Any, features: Mapping, line_ids: set[str]) -> str:
+    """The Argoverse 2 mark name of a lane side from ScenarioNet `left/right_boundaries`.
+
+    "NONE" when the side has no boundary entry, or when its boundary feature is a line of this
+    file: that line is a `RoadLine` of the map and drawn as itself.
+    """
     if not isinstance(entries, (list, tuple)) or not entries:
         return "NONE"
     entry = entries[0]
     if not isinstance(entry, Mapping):
         return "NONE"
+    ref_id = str(entry.get("boundary_feature_id", ""))
+    if ref_id in line_ids:
+        return "NONE"
     line_type = entry.get("boundary_type")
     if not (isinstance(line_type, str) and line_type in MARK_FROM_LINE_TYPE):
-        ref = features.get(str(entry.get("boundary_feature_id", "")))
+        ref = features.get(ref_id)
         line_type = ref.get("type") if isinstance(ref, Mapping) else None
     return MARK_FROM_LINE_TYPE.get(line_type, "NONE") if isinstance(line_type, str) else "NONE"
 
 
-def _lane_from_feature(
-    fid: str, feature: Mapping, lane_id: int, links: tuple, features: Mapping, source: str
-) -> Lane | None:
-    """A Lane from a lane map feature; None for a degenerate (zero-length) centreline."""
+def _exact_lane(fid: Any, feature: Mapping, lane_id: int, links: tuple, source: str) -> Lane:
+    """A Lane from one of our exported lane features (exact boundaries in `scenegen_*`)."""
     field = f"map_features[{fid!r}]"
     ftype = feature["type"]
-    if "scenegen_left" in feature and "scenegen_right" in feature:
-        left = _polyline(feature["scenegen_left"], source, f"{field}.scenegen_left", 2)
-        right = _polyline(feature["scenegen_right"], source, f"{field}.scenegen_right", 2)
-    else:
-        center = _polyline(_get(feature, "polyline", source, field), source, f"{field}.polyline")
-        aligned = len(_dedupe(center)) == len(center)
-        center = _dedupe(center)
-        if len(center) < 2:
-            return None
-        if aligned:
-            wl, wr = _lane_half_widths(feature, len(center), source, field)
-        else:
-            wl = wr = np.full(len(center), DEFAULT_HALF_WIDTH_M)
-        left, right = offset_centerline(center, wl, wr)
+    left = _polyline(feature["scenegen_left"], source, f"{field}.scenegen_left", 2)
+    right = _polyline(feature["scenegen_right"], source, f"{field}.scenegen_right", 2)
     default_type = "BIKE" if ftype == "LANE_BIKE_LANE" else "VEHICLE"
     successors, predecessors = links
     return Lane(
@@ -204,14 +314,8 @@ def _lane_from_feature(
         lane_type=str(feature.get("scenegen_lane_type", default_type)),
         left=left,
         right=right,
-        left_mark=str(
-            feature.get("scenegen_left_mark")
-            or _mark_from_boundaries(feature.get("left_boundaries"), features)
-        ),
-        right_mark=str(
-            feature.get("scenegen_right_mark")
-            or _mark_from_boundaries(feature.get("right_boundaries"), features)
-        ),
+        left_mark=str(feature.get("scenegen_left_mark", "NONE")),
+        right_mark=str(feature.get("scenegen_right_mark", "NONE")),
         is_intersection=bool(
             feature.get("scenegen_is_intersection", ftype == "LANE_SURFACE_UNSTRUCTURE")
         ),
@@ -220,24 +324,135 @@ def _lane_from_feature(
     )
 
 
+class _RealLane(NamedTuple):
+    """A converter's lane: centreline (+ half widths), its outline polygon if any, its marks."""
+
+    centerline: Centerline
+    polygon: np.ndarray | None
+    left_mark: str
+    right_mark: str
+
+
+def _real_lane(
+    fid: Any,
+    feature: Mapping,
+    lane_id: int,
+    links: tuple,
+    features: Mapping,
+    line_ids: set[str],
+    source: str,
+) -> _RealLane | None:
+    """A converter's lane feature as a Centerline; None for a degenerate (zero-length) one.
+
+    Half widths: the converter's `width` [P, 2] (Waymo: distances to the left / right boundary
+    line) where it is aligned with the centreline and within [MIN_GIVEN_HALF_WIDTH_M,
+    MAX_GIVEN_HALF_WIDTH_M]; else the distance along the normal to the lane's own `polygon`
+    (nuScenes, nuPlan); else unknown (0), which `outline_lanes` measures from the map's lines.
+    """
+    field = f"map_features[{fid!r}]"
+    ftype = feature["type"]
+    raw = _polyline(_get(feature, "polyline", source, field), source, f"{field}.polyline")
+    keep = _keep_mask(raw)
+    center = raw[keep]
+    if len(center) < 2:
+        return None
+    half = np.zeros((len(center), 2))
+    try:
+        w = np.asarray(feature.get("width", ()), dtype=np.float64)
+    except (TypeError, ValueError):  # unusable: measured from the lines instead
+        w = np.zeros(0)
+    if w.shape == (len(raw), 2):
+        w = w[keep]
+        ok = np.isfinite(w) & (w >= MIN_GIVEN_HALF_WIDTH_M) & (w <= MAX_GIVEN_HALF_WIDTH_M)
+        half = np.where(ok, w, 0.0)
+    polygon = None
+    if "polygon" in feature:
+        ring = _ring(_geometry(feature, ("polygon",), source, field))
+        if _distinct_points(ring) >= 3:
+            polygon = ring
+            closed = (
+                np.concatenate([ring, ring[:1]]) if _distinct_points(ring) == len(ring) else ring
+            )
+            segs = np.stack([closed[:-1], closed[1:]], axis=1)
+            n = normals(center)
+            max_m = 2 * surface.MAX_HALF_WIDTH_M
+            from_polygon = np.stack(
+                [ray_distances(center, n, max_m, segs), ray_distances(center, -n, max_m, segs)],
+                axis=1,
+            )
+            use = (half <= 0) & np.isfinite(from_polygon) & (from_polygon > 0)
+            half = np.where(use, from_polygon, half)
+    successors, predecessors = links
+    centerline = Centerline(
+        id=lane_id,
+        lane_type="BIKE" if ftype == "LANE_BIKE_LANE" else "VEHICLE",
+        points=center,
+        half_widths=half,
+        successors=successors,
+        predecessors=predecessors,
+        # nuScenes' lane connectors; other converters say nothing: inferred from crossings.
+        is_intersection=True if ftype == "LANE_SURFACE_UNSTRUCTURE" else None,
+    )
+    return _RealLane(
+        centerline,
+        polygon,
+        _mark_from_boundaries(feature.get("left_boundaries"), features, line_ids),
+        _mark_from_boundaries(feature.get("right_boundaries"), features, line_ids),
+    )
+
+
+def _outline(real: Sequence[_RealLane], lines: Sequence[RoadLine]) -> tuple[list, list]:
+    """(lanes, drivable polygons) of converter lanes, via `surface.outline_lanes`; a lane's
+    own polygon, where the converter wrote one, is its drivable polygon."""
+    lanes, areas = outline_lanes([r.centerline for r in real], lines)
+    lanes = [
+        dataclasses.replace(lane, left_mark=r.left_mark, right_mark=r.right_mark)
+        for lane, r in zip(lanes, real, strict=True)
+    ]
+    drivable = [r.polygon if r.polygon is not None else a for r, a in zip(real, areas, strict=True)]
+    return lanes, drivable
+
+
 def map_from_features(map_features: Mapping, source: str) -> tuple[VectorMap, collections.Counter]:
     """The VectorMap (in the scenario's world frame) and counts of unusable features.
 
-    Lanes come from lane types, crosswalks from CROSSWALK polygons, drivable areas from our own
-    `scenegen_kind == "drivable_area"` features. Our exported lane-boundary lines are part of
-    their lanes; every other feature (road lines and edges of real converters, stop signs, ...)
-    is counted as "map:<TYPE>".
+    Our own exports: lanes, lines, crosswalks and drivable areas come exactly from their
+    `scenegen_*` extras; our lane-boundary features are part of their lanes.
+
+    Real converters' features:
+    - lanes (`LANE_*`, and "UNKNOWN" features with lane keys) are centrelines, outlined with
+      `surface.outline_lanes` (see `_real_lane` for their half widths); each lane's drivable
+      polygon is its own `polygon` where it has one (nuScenes, nuPlan), else the outline's;
+    - `ROAD_LINE_*` / `UNKNOWN_LINE` become `RoadLine`s with the mark of `MARK_FROM_LINE_TYPE`
+      ("UNKNOWN" for other line types and Waymo's "UNKNOWN" lines); ROAD_EDGE_BOUNDARY,
+      ROAD_EDGE_MEDIAN (and BOUNDARY_LINE, ROAD_EDGE_UNKNOWN) and the drivable-area outlines
+      "boundary_<n>" of the nuScenes / nuPlan / Argoverse 2 converters become
+      `RoadLine(points, ROAD_EDGE)`;
+    - CROSSWALK / CROSS_WALK `polygon` or `polyline` with >= 3 distinct points are crosswalks;
+    - DRIVEWAY polygons join the drivable areas (driveways are drivable).
+    Everything else (STOP_SIGN, lower-case stop_sign, SPEED_BUMP, ROAD_EDGE_SIDEWALK, ...) is
+    counted as "map:<TYPE>", a feature whose `type` is not a string (MetaDrive's old pickles
+    hold some whose type is the feature dict itself) as "map:malformed_type", and geometry too
+    short to use as "map:degenerate_<kind>". NaN/inf coordinates raise ValueError.
     """
     if not isinstance(map_features, Mapping):
         raise _err(source, "map_features", f"expected a dict, got {type(map_features).__name__}")
     dropped: collections.Counter = collections.Counter()
-    lane_keys = []
+    kinds: dict[Any, str] = {}
     for fid, feature in map_features.items():
         ftype = _get(feature, "type", source, f"map_features[{fid!r}]")
-        if ftype in LANE_FEATURE_TYPES:
-            lane_keys.append(fid)
+        if not isinstance(ftype, str):
+            dropped["map:malformed_type"] += 1  # never str() it: it may contain itself
+            continue
+        kind = _feature_kind(fid, ftype, feature)
+        if kind is None:
+            dropped[f"map:{ftype}"] += 1
+        else:
+            kinds[fid] = kind
+    lane_keys = [fid for fid, kind in kinds.items() if kind == "lane"]
+    line_ids = {str(fid) for fid, kind in kinds.items() if kind in ("line", "edge")}
     # Integer lane ids when the file's ids are canonical integers (Argoverse, Waymo, ours);
-    # otherwise (nuScenes tokens) ids are positions in file order.
+    # otherwise (nuScenes, nuPlan tokens) ids are positions in file order.
     as_int = [_canonical_int(k) for k in lane_keys]
     int_ids = all(i is not None for i in as_int) and len(set(as_int)) == len(as_int)
     if int_ids:
@@ -255,33 +470,50 @@ def map_from_features(map_features: Mapping, source: str) -> tuple[VectorMap, co
             return tuple(i for i in ints if i is not None)
         return tuple(id_of[str(x)] for x in value if str(x) in id_of)
 
-    lanes, crosswalks, drivable = [], [], []
-    for fid, feature in map_features.items():
+    exact, real, lines, crosswalks, own_drivable, driveways = [], [], [], [], [], []
+    for fid, kind in kinds.items():
+        feature = map_features[fid]
         field = f"map_features[{fid!r}]"
         ftype = feature["type"]
-        kind = feature.get("scenegen_kind")
-        if ftype in LANE_FEATURE_TYPES:
+        if kind == "lane":
             links = (link_ids(feature.get("exit_lanes")), link_ids(feature.get("entry_lanes")))
-            lane = _lane_from_feature(fid, feature, id_of[str(fid)], links, map_features, source)
+            lane_id = id_of[str(fid)]
+            if "scenegen_left" in feature and "scenegen_right" in feature:
+                exact.append(_exact_lane(fid, feature, lane_id, links, source))
+                continue
+            lane = _real_lane(fid, feature, lane_id, links, map_features, line_ids, source)
             if lane is None:
                 dropped["map:degenerate_lane"] += 1
             else:
-                lanes.append(lane)
+                real.append(lane)
         elif kind == "lane_boundary":
             continue
-        elif kind == "drivable_area" or ftype == "CROSSWALK":
-            if "scenegen_polygon" in feature:
-                key = "scenegen_polygon"
-            elif "polygon" in feature:
-                key = "polygon"
+        elif kind == "own_line":
+            points = _polyline(feature.get("scenegen_points"), source, f"{field}.scenegen_points")
+            lines.append(RoadLine(points, str(feature.get("scenegen_mark", "UNKNOWN"))))
+        elif kind in ("line", "edge"):
+            points = _dedupe(_geometry(feature, ("polyline", "polygon"), source, field))
+            if len(points) < 2:
+                dropped[f"map:degenerate_{kind}"] += 1
+            elif kind == "edge":
+                lines.append(RoadLine(points, ROAD_EDGE))
             else:
-                key = "polyline"
-            poly = _polyline(_get(feature, key, source, field), source, f"{field}.{key}", 3)
-            (drivable if kind == "drivable_area" else crosswalks).append(poly)
-        else:
-            dropped[f"map:{ftype}"] += 1
+                lines.append(RoadLine(points, MARK_FROM_LINE_TYPE.get(ftype, "UNKNOWN")))
+        elif "scenegen_polygon" in feature:  # our own crosswalks and drivable areas: exact
+            poly = _polyline(feature["scenegen_polygon"], source, f"{field}.scenegen_polygon", 3)
+            (own_drivable if kind == "drivable_area" else crosswalks).append(poly)
+        else:  # a converter's crosswalk or driveway
+            ring = _ring(_geometry(feature, ("polygon", "polyline"), source, field))
+            if _distinct_points(ring) < 3:
+                dropped[f"map:degenerate_{kind}"] += 1
+            else:
+                (crosswalks if kind == "crosswalk" else driveways).append(ring)
+    outlined, lane_areas = _outline(real, lines)
     vmap = VectorMap(
-        lanes=tuple(lanes), crosswalks=tuple(crosswalks), drivable_areas=tuple(drivable)
+        lanes=tuple(exact) + tuple(outlined),
+        crosswalks=tuple(crosswalks),
+        drivable_areas=tuple(own_drivable) + tuple(lane_areas) + tuple(driveways),
+        lines=tuple(lines),
     )
     return vmap, dropped
 
@@ -310,16 +542,16 @@ def _read_track(tid: str, track: Any, length: int, source: str) -> _Track:
     sf = f"{field}.state"
     position = _array(_get(state, "position", source, sf), source, f"{sf}.position", 2, 2)[:, :2]
     if "length" in state and "width" in state:
-        lengths = _array(state["length"], source, f"{sf}.length", 1)
-        widths = _array(state["width"], source, f"{sf}.width", 1)
-    elif "size" in state:  # older exports: size [T, 3] = (length, width, height)
+        lengths = _series(state["length"], source, f"{sf}.length")
+        widths = _series(state["width"], source, f"{sf}.width")
+    elif "size" in state:  # MetaDrive's older Waymo pickles: size [T, 3] = (length, width, height)
         size = _array(state["size"], source, f"{sf}.size", 2, 2)
         lengths, widths = size[:, 0], size[:, 1]
     else:
         raise _err(source, f"{sf}.length", "missing (and no size)")
-    heading = _array(_get(state, "heading", source, sf), source, f"{sf}.heading", 1)
+    heading = _series(_get(state, "heading", source, sf), source, f"{sf}.heading")
     velocity = _array(_get(state, "velocity", source, sf), source, f"{sf}.velocity", 2, 2)[:, :2]
-    valid = _array(_get(state, "valid", source, sf), source, f"{sf}.valid", 1, dtype=bool)
+    valid = _valid_mask(_get(state, "valid", source, sf), source, f"{sf}.valid")
     arrays = dict(
         position=position,
         width=widths,
@@ -334,17 +566,12 @@ def _read_track(tid: str, track: Any, length: int, source: str) -> _Track:
     return _Track(type=ttype, **arrays)
 
 
-def _check_actor(tr: _Track, t: int, tid: str, boxed: bool, source: str) -> None:
-    sf = f"tracks[{tid!r}].state"
+def _finite_at(tr: _Track, t: int) -> str | None:
+    """The first state field with NaN/inf at step t, or None."""
     for name in ("position", "heading", "velocity", "width", "length"):
         if not np.all(np.isfinite(getattr(tr, name)[t])):
-            raise _err(source, f"{sf}.{name}[{t}]", "NaN or inf in a valid step")
-    if boxed and (tr.width[t] <= 0 or tr.length[t] <= 0):
-        raise _err(
-            source,
-            f"{sf}.width/length[{t}]",
-            f"box size must be positive, got width {tr.width[t]}, length {tr.length[t]}",
-        )
+            return name
+    return None
 
 
 def _int(value: Any, source: str, field: str) -> int:
@@ -365,51 +592,107 @@ def _se2(x: float, y: float, theta: float) -> np.ndarray:
     return np.array([[c, -s, x], [s, c, y], [0.0, 0.0, 1.0]])
 
 
-def frames_from_scenario(
-    scenario: Mapping,
-    source: str,
-    time_index: int | Sequence[int] | None = None,
-    *,
-    all_steps: bool = False,
-    map_radius_m: float | None = None,
-) -> list[ImportedFrame]:
-    """Frames (in the SDC's ego frame) of a ScenarioNet scenario, with per-frame drop counts.
+def _find_sdc(scenario: Mapping, meta: Mapping, tracks: Mapping, source: str) -> str:
+    """The SDC's key in `tracks` (as a str): `metadata.sdc_id`, else a `sdc_track_index` (top
+    level, then in metadata) that names a track, else one that indexes `tracks` in order."""
+    if "sdc_id" in meta:
+        sdc_id = str(meta["sdc_id"])
+        if sdc_id not in tracks:
+            raise _err(source, "metadata.sdc_id", f"{sdc_id!r} is not a key of tracks")
+        return sdc_id
+    for where, holder in (("sdc_track_index", scenario), ("metadata.sdc_track_index", meta)):
+        if "sdc_track_index" not in holder:
+            continue
+        value = holder["sdc_track_index"]
+        if str(value) in tracks:
+            return str(value)
+        if isinstance(value, (int, np.integer)) and 0 <= int(value) < len(tracks):
+            return list(tracks)[int(value)]
+        raise _err(source, where, f"{value!r} names no track and is no index into tracks")
+    raise _err(source, "metadata.sdc_id", "missing (and no sdc_track_index)")
 
-    Args:
-      scenario: the scenario dict (as loaded from a ScenarioNet pickle).
-      source: file it came from, used in error messages and as `Frame.source`.
-      time_index: step(s) to import; default `metadata["current_time_index"]` (0 if absent).
-      all_steps: import every step at which the SDC is valid (overrides `time_index`).
-      map_radius_m: if given, keep only map elements within this box radius (m) of the ego.
 
-    Returns:
-      One ImportedFrame(frame, dropped) per step. `dropped` counts actors valid at that step
-      whose type has no class (key: "type:<TYPE>") and map features the VectorMap cannot
-      hold (key: "map:<TYPE>").
+def _timestamps(scenario: Mapping) -> np.ndarray | None:
+    """The file's time stamps (s) from `metadata.ts` or a top-level `ts`, if readable."""
+    meta = scenario.get("metadata")
+    ts = meta.get("ts") if isinstance(meta, Mapping) else None
+    if ts is None:
+        ts = scenario.get("ts")
+    if ts is None:
+        return None
+    try:
+        arr = np.asarray(ts, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        return None
+    return arr if len(arr) >= 2 and np.all(np.isfinite(arr)) else None
 
-    Raises:
-      ValueError naming `source` and the field for missing keys, bad shapes, NaN/inf in valid
-      steps, non-positive box sizes of vehicles and cyclists, or an invalid SDC step.
-    """
+
+def scenario_sample_rate_hz(scenario: Mapping) -> float | None:
+    """Sample rate (Hz) of a scenario: 1 / the median step of `metadata.ts` or a top-level
+    `ts`; None when the file has no usable time stamps."""
     if not isinstance(scenario, Mapping):
-        raise _err(source, "scenario", f"expected a dict, got {type(scenario).__name__}")
-    meta = _get(scenario, "metadata", source, "")
-    tracks = _get(scenario, "tracks", source, "")
-    if not isinstance(tracks, Mapping):
-        raise _err(source, "tracks", f"expected a dict, got {type(tracks).__name__}")
-    sdc_id = str(_get(meta, "sdc_id", source, "metadata"))
-    if sdc_id not in tracks:
-        raise _err(source, "metadata.sdc_id", f"{sdc_id!r} is not a key of tracks")
-    sdc_field = f"tracks[{sdc_id!r}]"
-    if "length" in scenario:
-        length = _int(scenario["length"], source, "length")
-    else:
-        sdc_state = _get(tracks[sdc_id], "state", source, sdc_field)
-        length = len(np.asarray(_get(sdc_state, "position", source, f"{sdc_field}.state")))
-    read = {str(k): _read_track(str(k), v, length, source) for k, v in tracks.items()}
-    sdc = read[sdc_id]
+        return None
+    ts = _timestamps(scenario)
+    if ts is None:
+        return None
+    step = float(np.median(np.diff(ts)))
+    return 1.0 / step if step > 0 else None
 
-    if all_steps:
+
+def _step_times(scenario: Mapping, length: int) -> np.ndarray:
+    """[length] time (s) of each step: the file's `ts` when it has one entry per step and
+    increases; else steps of its median interval, or of DEFAULT_STEP_S."""
+    ts = _timestamps(scenario)
+    if ts is not None and len(ts) == length and np.all(np.diff(ts) > 0):
+        return ts
+    rate = scenario_sample_rate_hz(scenario)
+    step = 1.0 / rate if rate else DEFAULT_STEP_S
+    return np.arange(length) * step
+
+
+def velocity_mismatch(tracks: Sequence[_Track], times: np.ndarray) -> bool:
+    """Whether a file's velocities disagree with its positions.
+
+    Centred finite differences of the positions over valid steps (with the steps' times) are
+    compared with the stored velocities of actors of our classes moving faster than
+    MOVING_MPS: a mismatch when the median relative error exceeds VELOCITY_MISMATCH_REL_ERR
+    (with at least MIN_MOVING_SAMPLES such samples). nuScenes' early converter writes zero
+    velocities, for example.
+    """
+    rel = []
+    dt = (times[2:] - times[:-2])[:, None]
+    for tr in tracks:
+        if tr.type not in CLASS_FROM_TYPE or len(tr.valid) < 3:
+            continue
+        both = tr.valid[2:] & tr.valid[:-2] & tr.valid[1:-1]
+        if not both.any():
+            continue
+        with np.errstate(invalid="ignore", divide="ignore"):
+            fd = (tr.position[2:] - tr.position[:-2]) / dt
+        speed = np.linalg.norm(fd, axis=1)
+        v = tr.velocity[1:-1]
+        ok = both & np.isfinite(speed) & (speed > MOVING_MPS) & np.all(np.isfinite(v), axis=1)
+        rel.append(np.linalg.norm(v[ok] - fd[ok], axis=1) / speed[ok])
+    err = np.concatenate(rel) if rel else np.zeros(0)
+    return len(err) >= MIN_MOVING_SAMPLES and float(np.median(err)) > VELOCITY_MISMATCH_REL_ERR
+
+
+def _steps(
+    time_index: int | Sequence[int] | None,
+    all_steps: bool,
+    stride: int | None,
+    sdc: _Track,
+    meta: Mapping,
+    length: int,
+    source: str,
+) -> list[int]:
+    if stride is not None:
+        if all_steps or time_index is not None:
+            raise _err(source, "stride", "give only one of time_index, all_steps and stride")
+        if isinstance(stride, bool) or not isinstance(stride, (int, np.integer)) or stride < 1:
+            raise _err(source, "stride", f"expected a positive integer, got {stride!r}")
+        steps = [t for t in range(0, length, int(stride)) if sdc.valid[t]]
+    elif all_steps:
         steps = [int(t) for t in np.flatnonzero(sdc.valid)]
     elif time_index is None:
         steps = [_int(meta.get("current_time_index", 0), source, "metadata.current_time_index")]
@@ -420,24 +703,105 @@ def frames_from_scenario(
     for t in steps:
         if not 0 <= t < length:
             raise _err(source, "time_index", f"{t} outside [0, {length})")
+    return steps
+
+
+def frames_from_scenario(
+    scenario: Mapping,
+    source: str,
+    time_index: int | Sequence[int] | None = None,
+    *,
+    all_steps: bool = False,
+    stride: int | None = None,
+    map_radius_m: float | None = None,
+) -> list[ImportedFrame]:
+    """Frames (in the SDC's ego frame) of a ScenarioNet scenario, with per-frame drop counts.
+
+    Args:
+      scenario: the scenario dict (as loaded from a ScenarioNet pickle).
+      source: file it came from, used in error messages and as `Frame.source`.
+      time_index: step(s) to import; default `metadata["current_time_index"]` (0 if absent).
+      all_steps: import every step at which the SDC is valid (overrides `time_index`).
+      stride: import steps 0, stride, 2 * stride, ... at which the SDC is valid (not together
+        with `time_index` or `all_steps`).
+      map_radius_m: if given, keep only map elements within this box radius (m) of the ego.
+
+    Returns:
+      One ImportedFrame(frame, dropped) per step. Every track valid at a frame's step (other
+      than the SDC) is an actor of the frame or counted in `dropped`:
+      - "type:<TYPE>": a type with no class (OTHER, TRAFFIC_CONE, TRAFFIC_BARRIER, ...);
+      - "invalid:nan": NaN/inf in the step's position, heading, velocity or box size;
+      - "invalid:size": a vehicle or cyclist box with a non-positive length or width.
+      Counted but kept:
+      - "quirk:length_lt_width": a vehicle or cyclist box (the SDC's included) whose length is
+        shorter than its width. Boxes have no preferred axis other than the heading's, and
+        converters do write swapped sizes (nuScenes' early converter for every box but the
+        ego's, its current one for the ego's); the box is kept with its two sides sorted so
+        that length >= width and its heading unchanged.
+      - "quirk:velocity_mismatch": the file's velocities (which are used) disagree with its
+        positions (`velocity_mismatch`); counted once per file, in the first frame.
+      Map features the VectorMap cannot hold ("map:<TYPE>", see `map_from_features`) are
+      counted once per file, in the first frame.
+
+    Raises:
+      ValueError naming `source` and the field for missing keys (tracks, the SDC, map
+      features), bad shapes, an SDC that is invalid, non-finite or without a positive box
+      size at a requested step, or NaN/inf map geometry.
+    """
+    if not isinstance(scenario, Mapping):
+        raise _err(source, "scenario", f"expected a dict, got {type(scenario).__name__}")
+    meta = scenario.get("metadata", {})
+    if not isinstance(meta, Mapping):
+        raise _err(source, "metadata", f"expected a dict, got {type(meta).__name__}")
+    tracks = _get(scenario, "tracks", source, "")
+    if not isinstance(tracks, Mapping):
+        raise _err(source, "tracks", f"expected a dict, got {type(tracks).__name__}")
+    keys = [str(k) for k in tracks]  # MetaDrive's old pickles key some files' tracks by int
+    if len(set(keys)) != len(keys):
+        raise _err(source, "tracks", "two track ids are equal as strings")
+    tracks = dict(zip(keys, tracks.values(), strict=True))
+    sdc_id = _find_sdc(scenario, meta, tracks, source)
+    sdc_field = f"tracks[{sdc_id!r}]"
+    if "length" in scenario:
+        length = _int(scenario["length"], source, "length")
+    else:  # MetaDrive's old Waymo pickles have no `length`
+        sdc_state = _get(tracks[sdc_id], "state", source, sdc_field)
+        length = len(np.asarray(_get(sdc_state, "position", source, f"{sdc_field}.state")))
+    read = {tid: _read_track(tid, v, length, source) for tid, v in tracks.items()}
+    sdc = read[sdc_id]
+    steps = _steps(time_index, all_steps, stride, sdc, meta, length, source)
 
     world_map, map_dropped = map_from_features(_get(scenario, "map_features", source, ""), source)
     city_from_world = np.asarray(meta.get("scenegen_city_from_world", np.eye(3)), np.float64)
     if city_from_world.shape != (3, 3) or not np.all(np.isfinite(city_from_world)):
         raise _err(source, "metadata.scenegen_city_from_world", "expected a finite 3x3 matrix")
     scenario_id = str(scenario.get("id", meta.get("scenario_id", Path(source).stem)))
+    mismatch = bool(steps) and velocity_mismatch(list(read.values()), _step_times(scenario, length))
 
     out = []
     for t in steps:
         sf = f"{sdc_field}.state"
         if not sdc.valid[t]:
             raise _err(source, f"{sf}.valid[{t}]", "the SDC (ego) is not valid at this step")
-        _check_actor(sdc, t, sdc_id, True, source)
+        bad = _finite_at(sdc, t)
+        if bad is not None:
+            raise _err(source, f"{sf}.{bad}[{t}]", "NaN or inf in a valid step of the SDC")
+        ego_w, ego_l = float(sdc.width[t]), float(sdc.length[t])
+        if ego_w <= 0 or ego_l <= 0:
+            raise _err(
+                source,
+                f"{sf}.width/length[{t}]",
+                f"box size must be positive, got width {ego_w}, length {ego_l}",
+            )
+        # Map features are the file's, not the frame's: counted once, in the first frame.
+        dropped = collections.Counter() if out else collections.Counter(map_dropped)
+        if ego_l < ego_w:
+            dropped["quirk:length_lt_width"] += 1
+            ego_w, ego_l = ego_l, ego_w
         x0, y0 = sdc.position[t]
         h0 = float(sdc.heading[t])
         ego_from_world = rotation_matrix(-h0)
 
-        dropped = collections.Counter(map_dropped)
         cls, pos, size, heading, vel, ids = [], [], [], [], [], []
         for tid, tr in read.items():
             if tid == sdc_id or not tr.valid[t]:
@@ -446,10 +810,20 @@ def frames_from_scenario(
                 dropped[f"type:{tr.type}"] += 1
                 continue
             c = CLASS_FROM_TYPE[tr.type]
-            _check_actor(tr, t, tid, c != PEDESTRIAN, source)
+            if _finite_at(tr, t) is not None:
+                dropped["invalid:nan"] += 1
+                continue
+            w, length_m = float(tr.width[t]), float(tr.length[t])
+            if c != PEDESTRIAN:
+                if w <= 0 or length_m <= 0:
+                    dropped["invalid:size"] += 1
+                    continue
+                if length_m < w:
+                    dropped["quirk:length_lt_width"] += 1
+                    w, length_m = length_m, w
             cls.append(c)
             pos.append(ego_from_world @ (tr.position[t] - (x0, y0)))
-            size.append((tr.width[t], tr.length[t]))
+            size.append((w, length_m))
             heading.append(tr.heading[t] - h0)
             vel.append(ego_from_world @ tr.velocity[t])
             ids.append(tid)
@@ -469,11 +843,13 @@ def frames_from_scenario(
             velocity=np.asarray(vel, np.float64).reshape(n, 2),
             track_id=np.asarray(ids, dtype=str).reshape(n),
             ego_velocity=ego_from_world @ sdc.velocity[t],
-            ego_size=np.array([sdc.width[t], sdc.length[t]], np.float64),
+            ego_size=np.array([ego_w, ego_l], np.float64),
             map=vmap,
             city_from_ego=city_from_world @ _se2(x0, y0, h0),
         )
         out.append(ImportedFrame(frame, dropped))
+    if mismatch and out:
+        out[0].dropped["quirk:velocity_mismatch"] += 1
     return out
 
 
@@ -505,6 +881,7 @@ def read_scenarionet(
     time_index: int | Sequence[int] | None = None,
     *,
     all_steps: bool = False,
+    stride: int | None = None,
     map_radius_m: float | None = None,
 ) -> Iterator[ImportedFrame]:
     """(Frame, dropped Counter) for every scenario file under `root`; see frames_from_scenario."""
@@ -514,6 +891,7 @@ def read_scenarionet(
             str(path),
             time_index,
             all_steps=all_steps,
+            stride=stride,
             map_radius_m=map_radius_m,
         )
 
@@ -659,6 +1037,19 @@ def map_features_from_vector_map(vmap: VectorMap) -> dict[str, dict]:
             "scenegen_kind": "crosswalk",
             "scenegen_polygon": np.asarray(poly, np.float64),
         }
+    for i, line in enumerate(vmap.lines):
+        mark = str(line.mark)
+        if mark == ROAD_EDGE:
+            line_type = "ROAD_EDGE_BOUNDARY"
+        else:
+            line_type = LINE_TYPE_FROM_MARK.get(mark.upper(), "UNKNOWN_LINE")
+        features[f"line_{i}"] = {
+            "type": line_type,
+            "polyline": _xyz(line.points),
+            "scenegen_kind": "line",
+            "scenegen_mark": mark,
+            "scenegen_points": np.asarray(line.points, np.float64),
+        }
     for i, poly in enumerate(vmap.drivable_areas):
         ring = np.asarray(poly, np.float64)
         if len(ring) and not np.allclose(ring[0], ring[-1]):
@@ -788,7 +1179,8 @@ def frame_differences(a: Frame, b: Frame, atol: float = 1e-4) -> list[str]:
     """Fields in which two frames differ beyond `atol` (m, rad, m/s); [] when they match.
 
     Headings compare as angles; the map compares lane by lane (ids, types, marks, flags, links,
-    boundary points), then crosswalk and drivable-area points. `source` is not compared.
+    boundary points), then crosswalk and drivable-area points, then lines (marks and points).
+    `source` is not compared.
     """
     diffs: list[str] = []
     if a.scene_id != b.scene_id:
@@ -824,4 +1216,9 @@ def frame_differences(a: Frame, b: Frame, atol: float = 1e-4) -> list[str]:
         pa, pb = getattr(a.map, name), getattr(b.map, name)
         if len(pa) != len(pb) or not all(close(p, q) for p, q in zip(pa, pb, strict=True)):
             diffs.append(f"map.{name}")
+    la, lb = a.map.lines, b.map.lines
+    if len(la) != len(lb) or not all(
+        p.mark == q.mark and close(p.points, q.points) for p, q in zip(la, lb, strict=True)
+    ):
+        diffs.append("map.lines")
     return diffs

@@ -110,9 +110,7 @@ def _scalar(obj: Mapping, key: str, source: str, field: str) -> float:
     return float(value)
 
 
-def heading_unit_is_degrees(
-    heading: np.ndarray, velocity: np.ndarray, valid: np.ndarray
-) -> bool:
+def heading_unit_is_degrees(heading: np.ndarray, velocity: np.ndarray, valid: np.ndarray) -> bool:
     """Whether headings [O, T] are degrees, from their agreement with velocity directions."""
     speed = np.linalg.norm(velocity, axis=-1)
     moving = valid & (speed > MOVING_MPS) & np.isfinite(heading)
@@ -180,7 +178,9 @@ def estimate_sdc(tracks: Tracks) -> int:
         dist = np.where(tracks.valid, dist, -np.inf)
         dist[i] = -np.inf
         farthest = dist.max(axis=0)
-        reach.append(np.mean(farthest[np.isfinite(farthest)]) if np.isfinite(farthest).any() else 0.0)
+        reach.append(
+            np.mean(farthest[np.isfinite(farthest)]) if np.isfinite(farthest).any() else 0.0
+        )
     return int(always[int(np.argmin(reach))])
 
 
@@ -193,7 +193,9 @@ def find_sdc(data: Mapping, tracks: Tracks, objects: list, source: str) -> int:
             raise _err(source, "metadata.sdc_track_index", f"not an object index: {index!r}")
         # Objects of unknown types were left out of `tracks`: count the kept ones before it.
         kept_before = sum(
-            1 for o in objects[:index] if isinstance(o, Mapping) and o.get("type") in CLASS_FROM_TYPE
+            1
+            for o in objects[:index]
+            if isinstance(o, Mapping) and o.get("type") in CLASS_FROM_TYPE
         )
         if objects[index].get("type") != "vehicle":
             raise _err(source, "metadata.sdc_track_index", "the SDC is not a vehicle")
@@ -311,7 +313,9 @@ def _se2(x: float, y: float, theta: float) -> np.ndarray:
     return np.array([[c, -s, x], [s, c, y], [0.0, 0.0, 1.0]])
 
 
-def frames_from_scenario(data: Any, source: str, stride: int) -> tuple[list[Frame], collections.Counter]:
+def frames_from_scenario(
+    data: Any, source: str, stride: int
+) -> tuple[list[Frame], collections.Counter]:
     """Frames at steps 0, stride, 2 stride, ... where the ego is valid, and the drop counts.
 
     Rows valid at a frame's step are either actors of the frame or counted drops (unknown
@@ -336,9 +340,11 @@ def frames_from_scenario(data: Any, source: str, stride: int) -> tuple[list[Fram
         rows = np.flatnonzero(tracks.valid[:, t])
         rows = rows[rows != sdc]
         bad_size = boxed[rows] & np.any(tracks.size[rows] <= 0, axis=1)
-        finite = np.all(np.isfinite(tracks.position[rows, t]), axis=1) & np.all(
-            np.isfinite(tracks.velocity[rows, t]), axis=1
-        ) & np.isfinite(tracks.heading[rows, t])
+        finite = (
+            np.all(np.isfinite(tracks.position[rows, t]), axis=1)
+            & np.all(np.isfinite(tracks.velocity[rows, t]), axis=1)
+            & np.isfinite(tracks.heading[rows, t])
+        )
         dropped["invalid:size"] += int(np.sum(bad_size & finite))
         dropped["invalid:nan"] += int(np.sum(~finite))
         rows = rows[finite & ~bad_size]
