@@ -44,6 +44,8 @@ def test_prepare_counts_match_feather(data_root, tmp_path, capsys):
             str(tmp_path / "c"),
             "--config",
             "tiny",
+            "--stride",
+            "1",
         ]
     )
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
