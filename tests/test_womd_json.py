@@ -250,3 +250,17 @@ def test_prepare_counts_and_skips_a_corrupt_file(tmp_path, womd_files):
     with pytest.raises(ValueError, match="broken.json"):
         prepare(spec, str(tmp_path / "cache2"), cfg, workers=1, strict=True)
     shutil.rmtree(src)
+
+
+def test_real_vehicles_on_the_drivable_surface(tmp_path, womd_root):
+    """The built drivable layer holds the moving vehicles of real Waymo scenes (val split,
+    `cpu` raster); parked cars in parking lots, which Waymo maps do not draw, may be off it."""
+    from scenegen_jax.data.cache import load_cache
+    from scenegen_jax.eval.realism import real_data_check
+
+    cfg = get_config("cpu")
+    spec = source_spec("womd_json", os.path.join(womd_root, "gpudrive_json"), "val", 10)
+    prepare(spec, str(tmp_path / "c"), cfg, workers=2)
+    check = real_data_check(load_cache(str(tmp_path / "c")), cfg)
+    assert check["moving_drivable_share"] > 0.95, check
+    assert check["drivable_share"] > 0.55, check
