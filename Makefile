@@ -16,8 +16,14 @@ $(VENV)/.installed: pyproject.toml
 	$(BIN)/pip install -q -e '.[test]'
 	touch $@
 
+# Two pytest workers (one per core of the 2-core machines we test on; TEST_WORKERS=0 runs
+# in this process); the suite's wall time is printed at the end.
+TEST_WORKERS ?= 2
+
 test: install
-	$(BIN)/python -m pytest -q
+	@start=$$(date +%s); \
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --durations=15; rc=$$?; \
+	echo "make test: $$(( $$(date +%s) - start )) s wall"; exit $$rc
 
 lint: install
 	$(BIN)/ruff check scenegen_jax tests experiments

@@ -46,7 +46,7 @@ def cmd_render(args) -> None:
     from scenegen_jax.viz.render import render_scene
 
     cache = load_cache(args.cache)
-    saved = Config.from_json(json.dumps(cache.meta["config"]))
+    saved = Config.from_json(json.dumps(cache.meta["config"]), f"{args.cache}/meta.json")
     cfg = apply_overrides(saved, **_overrides(args.set))
     cache.check_config(cfg)
     indices = args.index if args.index else [0]
@@ -110,13 +110,14 @@ def cmd_score(args) -> None:
         summarize_scores,
     )
     from scenegen_jax.train.data import load_union
-    from scenegen_jax.train.loop import load_trained
 
     if args.top_k < 0 or (args.top_k and not args.render):
         raise SystemExit("--top-k K needs K >= 0 and --render DIR")
-    cfg, state = load_trained(args.workdir, args.step)
+    if args.batch_size < 1:
+        raise SystemExit(f"--batch-size must be >= 1, got {args.batch_size}")
+    cfg, params, _ = load_model(args)
     cache = load_union(args.data, cfg)  # every --data cache, its scenes one after another
-    scores = score_cache(state.params, cache, cfg, batch_size=args.batch_size)
+    scores = score_cache(params, cache, cfg, batch_size=args.batch_size)
     total = sum(scores[k] for k in TERMS)
     actor = actor_steps(scores)
     n_actors = actor.sum(1)
@@ -214,7 +215,6 @@ def cmd_sample(args) -> None:
         sample_split,
     )
     from scenegen_jax.scene import CLASS_NAMES, NUM_CLASSES, Actors
-    from scenegen_jax.train.loop import load_trained
     from scenegen_jax.viz.heatmap import render_heatmaps
     from scenegen_jax.viz.render import render_scene
 
@@ -222,11 +222,7 @@ def cmd_sample(args) -> None:
         raise SystemExit("--num and --batch-size must be >= 1")
     if args.proposals is not None and args.proposals < 1:
         raise SystemExit("--proposals must be >= 1")
-    cfg, state = load_trained(args.workdir, args.step)
-    # Uncommitted copies: restored arrays are committed to a device, and jit compiles a
-    # separate executable for committed inputs.
-    params = jax.device_put(jax.device_get(state.params))
-    del state
+    cfg, params, _ = load_model(args)
     cache = load_cache(args.data)
     cache.check_config(cfg)
     indices = list(args.index) if args.index else list(range(len(cache)))
@@ -378,13 +374,14 @@ def cmd_sample(args) -> None:
 def cmd_evaluate(args) -> None:
     from scenegen_jax.eval.evaluate import evaluate, format_table
     from scenegen_jax.train.data import load_union
-    from scenegen_jax.train.loop import load_trained
 
-    cfg, state = load_trained(args.workdir, args.step)
+    if args.num < 1:
+        raise SystemExit(f"--num must be >= 1, got {args.num}")
+    cfg, params, step = load_model(args)
     cache = load_union(args.data, cfg)
     train_cache = load_union(args.train_data, cfg)
-    report = evaluate(state.params, cfg, cache, train_cache, args.num, args.seed)
-    report["step"] = int(state.step)
+    report = evaluate(params, cfg, cache, train_cache, args.num, args.seed)
+    report["step"] = step
     report["command"] = " ".join(["scenegen", *sys.argv[1:]])
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as f:
@@ -407,6 +404,55 @@ def cmd_compare(args) -> None:
                   f"  ({r['actors']} actors)")
         else:
             print(f"  {name:<11} no actors")
+
+
+def load_model(args):
+    """(config, parameters, training step) of `--pretrained NAME` or `--workdir` (`--step`)."""
+    import jax
+
+    if args.pretrained:
+        from scenegen_jax.pretrained import load_pretrained
+
+        cfg, params, manifest = load_pretrained(args.pretrained)
+        step = manifest["step"]
+    else:
+        from scenegen_jax.train.loop import load_trained
+
+        cfg, state = load_trained(args.workdir, args.step)
+        params, step = state.params, int(state.step)
+    # Uncommitted copies: restored arrays are committed to a device, and jit compiles a
+    # separate executable for committed inputs.
+    return cfg, jax.device_put(jax.device_get(params)), step
+
+
+def cmd_export_model(args) -> None:
+    from scenegen_jax.pretrained import save_pretrained
+    from scenegen_jax.train.loop import load_trained
+
+    cfg, state = load_trained(args.workdir, args.step)
+    manifest = save_pretrained(args.out, cfg, state.params, int(state.step), args.workdir)
+    print(json.dumps({"out": args.out, **manifest}))
+
+
+def add_model_args(sp) -> None:
+    """`--workdir DIR [--step N]` or `--pretrained NAME`: the model a command uses."""
+    which = sp.add_mutually_exclusive_group(required=True)
+    which.add_argument("--workdir", help="training workdir (config + checkpoints)")
+    which.add_argument(
+        "--pretrained", metavar="NAME",
+        help="a model shipped with the package (`scenegen models` lists them) or a directory "
+        "written by `scenegen export-model`",
+    )
+    sp.add_argument("--step", type=int, help="checkpoint step of --workdir (default: the latest)")
+
+
+def cmd_models(args) -> None:
+    from scenegen_jax.pretrained import available, load_pretrained
+
+    for name in available():
+        cfg, _, manifest = load_pretrained(name)
+        print(f"{name}\tconfig {cfg.name}, grid {cfg.grid_size}, step {manifest['step']}, "
+              f"{manifest['parameters']} parameters")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -469,8 +515,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.set_defaults(func=cmd_train)
 
     sp = sub.add_parser("score", help="NLL of real scenes under a trained model")
-    sp.add_argument("--workdir", required=True)
-    sp.add_argument("--step", type=int, help="checkpoint step to load (default: the latest)")
+    add_model_args(sp)
     sp.add_argument("--data", required=True, nargs="+", metavar="CACHE",
                     help="cache directories to score (summary also per source)")
     sp.add_argument("--out", required=True, help="CSV, one row per scene (with its source)")
@@ -483,8 +528,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.set_defaults(func=cmd_score)
 
     sp = sub.add_parser("sample", help="sample new scenes on the maps of cache scenes")
-    sp.add_argument("--workdir", required=True, help="training workdir (config + checkpoints)")
-    sp.add_argument("--step", type=int, help="checkpoint step to load (default: the latest)")
+    add_model_args(sp)
     sp.add_argument("--data", required=True, help="cache whose maps and egos condition the scenes")
     sp.add_argument("--num", type=int, required=True, help="scenes to sample")
     sp.add_argument("--out", required=True, help="output directory")
@@ -508,8 +552,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="scenes per batch, split into concurrent calls (one per core on CPU)")
     sp.set_defaults(func=cmd_sample)
     sp = sub.add_parser("evaluate", help="NLL and MMD of SceneGen and baselines (Table 1)")
-    sp.add_argument("--workdir", required=True)
-    sp.add_argument("--step", type=int, help="checkpoint step to load (default: the latest)")
+    add_model_args(sp)
     sp.add_argument("--data", required=True, nargs="+", metavar="CACHE",
                     help="caches of the evaluation split (NLL also per source)")
     sp.add_argument("--train-data", required=True, nargs="+", metavar="CACHE",
@@ -518,6 +561,13 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--seed", type=int, default=0)
     sp.add_argument("--out", required=True, help="report JSON")
     sp.set_defaults(func=cmd_evaluate)
+    sp = sub.add_parser("export-model", help="write a workdir's parameters as a pretrained model")
+    sp.add_argument("--workdir", required=True)
+    sp.add_argument("--step", type=int, help="checkpoint step (default: the latest)")
+    sp.add_argument("--out", required=True, help="directory (config, parameters, manifest)")
+    sp.set_defaults(func=cmd_export_model)
+    sp = sub.add_parser("models", help="list the pretrained models shipped with the package")
+    sp.set_defaults(func=cmd_models)
     sp = sub.add_parser(
         "compare", help="paired NLL difference of two models on the same scenes, with intervals"
     )

@@ -86,15 +86,9 @@ class Config:
     seed: int = 0
 
     def __post_init__(self):
-        unknown = set(self.map_layers) - set(LAYER_GROUPS)
-        if unknown:
-            raise ValueError(
-                f"unknown map layer groups {sorted(unknown)}; known: {ALL_LAYER_GROUPS}"
-            )
-        if self.grid_size <= 0 or self.m_per_px <= 0:
-            raise ValueError("grid_size and m_per_px must be positive")
-        if not 0.0 <= self.map_dropout <= 1.0:
-            raise ValueError(f"map_dropout must be in [0, 1], got {self.map_dropout}")
+        problems = config_problems(self)
+        if problems:
+            raise ValueError("invalid config: " + "; ".join(problems))
 
     @property
     def region_m(self) -> float:
@@ -123,11 +117,78 @@ class Config:
         return json.dumps(dataclasses.asdict(self), indent=2)
 
     @classmethod
-    def from_json(cls, text: str) -> Config:
-        d = json.loads(text)
-        d["map_layers"] = tuple(d["map_layers"])
-        d["ego_size_m"] = tuple(d["ego_size_m"])
-        return cls(**d)
+    def from_json(cls, text: str, source: str = "config") -> Config:
+        """The config of `to_json` text; errors name `source` (a file) and the field."""
+        try:
+            d = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{source}: not valid JSON ({e})") from e
+        if not isinstance(d, dict):
+            raise ValueError(f"{source}: expected a JSON object of config fields")
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        unknown = sorted(set(d) - set(fields))
+        if unknown:
+            raise ValueError(f"{source}: unknown config field(s) {unknown}")
+        default = cls()
+        for key, value in d.items():
+            want = type(getattr(default, key))
+            if want is tuple:
+                if not isinstance(value, list):
+                    raise ValueError(f"{source}: field {key}: expected a list, got {value!r}")
+                d[key] = tuple(value)
+            elif want is float and isinstance(value, int) and not isinstance(value, bool):
+                d[key] = float(value)
+            elif type(value) is not want:
+                raise ValueError(
+                    f"{source}: field {key}: expected {want.__name__}, got {value!r}"
+                )
+        try:
+            return cls(**d)
+        except ValueError as e:
+            raise ValueError(f"{source}: {e}") from e
+
+    def differences(self, other: Config) -> list[str]:
+        """'field: self value != other value' for every field that differs."""
+        return [
+            f"{f.name}: {getattr(self, f.name)!r} != {getattr(other, f.name)!r}"
+            for f in dataclasses.fields(self)
+            if getattr(self, f.name) != getattr(other, f.name)
+        ]
+
+
+def config_problems(cfg: Config) -> list[str]:
+    """Every field value of `cfg` that cannot work, with the reason (empty if none)."""
+    out = []
+    unknown = sorted(set(cfg.map_layers) - set(LAYER_GROUPS))
+    if unknown:
+        out.append(f"map_layers: unknown groups {unknown}; known: {list(ALL_LAYER_GROUPS)}")
+    positive_ints = ("grid_size", "max_actors", "hidden", "backbone_layers", "gn_groups",
+                     "num_mixtures", "hard_negatives", "bptt_window", "batch_size", "proposals")
+    for name in positive_ints:
+        v = getattr(cfg, name)
+        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+            out.append(f"{name}: must be an integer >= 1, got {v!r}")
+    if isinstance(cfg.hidden, int) and isinstance(cfg.gn_groups, int) and cfg.gn_groups >= 1 \
+            and cfg.hidden % cfg.gn_groups:
+        out.append(f"gn_groups: must divide hidden ({cfg.hidden}), got {cfg.gn_groups}")
+    for name in ("m_per_px", "learning_rate", "pedestrian_size_m"):
+        v = getattr(cfg, name)
+        if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
+            out.append(f"{name}: must be a finite number > 0, got {v!r}")
+    for name in ("grad_clip", "zero_speed"):
+        v = getattr(cfg, name)
+        if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
+            out.append(f"{name}: must be a finite number >= 0, got {v!r}")
+    if not (isinstance(cfg.map_dropout, int | float) and 0.0 <= cfg.map_dropout <= 1.0):
+        out.append(f"map_dropout: must be in [0, 1], got {cfg.map_dropout!r}")
+    if len(cfg.ego_size_m) != 2 or not all(
+        isinstance(v, int | float) and math.isfinite(v) and v > 0 for v in cfg.ego_size_m
+    ):
+        out.append(f"ego_size_m: must be two numbers > 0 (width, length), got {cfg.ego_size_m!r}")
+    for name in ("rotate_augment", "remat"):
+        if not isinstance(getattr(cfg, name), bool):
+            out.append(f"{name}: must be true or false, got {getattr(cfg, name)!r}")
+    return out
 
 
 PRESETS: dict[str, Config] = {
@@ -179,19 +240,24 @@ def apply_overrides(base: Config, **overrides: Any) -> Config:
     for key, value in overrides.items():
         if key not in fields:
             raise ValueError(f"unknown config field {key!r}; fields: {sorted(fields)}")
-        parsed[key] = _parse(getattr(base, key), value)
+        parsed[key] = _parse(getattr(base, key), value, key)
     return base.replace(**parsed)
 
 
-def _parse(current: Any, value: Any) -> Any:
+def _parse(current: Any, value: Any, key: str = "value") -> Any:
     if not isinstance(value, str):
         return value
     if isinstance(current, bool):
-        return value.lower() in ("1", "true", "yes")
-    if isinstance(current, int):
-        return int(value)
-    if isinstance(current, float):
-        return float(value)
+        if value.lower() not in ("true", "false"):
+            raise ValueError(f"{key}: must be true or false, got {value!r}")
+        return value.lower() == "true"
+    try:
+        if isinstance(current, int):
+            return int(value)
+        if isinstance(current, float):
+            return float(value)
+    except ValueError as e:
+        raise ValueError(f"{key}: expected {type(current).__name__}, got {value!r}") from e
     if isinstance(current, tuple):
         if value.lower() in ("", "none"):
             return ()

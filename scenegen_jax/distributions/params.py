@@ -21,7 +21,10 @@ outputs give finite log-likelihoods and gradients; outside the range the gradien
 
 from __future__ import annotations
 
+import math
+
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 # Log variance of log width / log length: sigma in [6.7e-3, 148] (log m).
@@ -58,6 +61,57 @@ def velocity_params_size(k: int) -> int:
     """Length of the raw velocity head output for the model's K (component 0 = v = 0)."""
     kv = velocity_components(k)
     return kv + 5 * (kv - 1)
+
+
+# Initial spread of the moving components' mean log speed, log m/s (0.5 to 25 m/s).
+INIT_LOG_SPEED_RANGE = (math.log(0.5), math.log(25.0))
+
+
+def _spread_directions(n: int) -> np.ndarray:
+    """[n, 2] unit biternions at angles 2 pi j / n, j = 0..n-1."""
+    a = 2.0 * np.pi * np.arange(n) / n
+    return np.stack([np.cos(a), np.sin(a)], axis=-1)
+
+
+def _spread_log_kappa(n: int) -> float:
+    """Log concentration whose angular spread (1 / sqrt(kappa)) equals the spacing 2 pi / n of
+    n evenly spread components (clamped to `LOG_KAPPA_RANGE`)."""
+    return float(np.clip(2.0 * math.log(n / (2.0 * math.pi)), *LOG_KAPPA_RANGE))
+
+
+def initial_heading_bias(k: int) -> np.ndarray:
+    """Initial bias [4K] of the raw heading output: equal weights, means evenly spread around
+    the circle, each as wide as the spacing.
+
+    The mixture then starts close to uniform (equal-weight, evenly spread components cancel
+    every harmonic below the K-th), so the loss does not push the concentrations to the
+    floor of `LOG_KAPPA_RANGE`, where the clamp's gradient is zero and the direction's is
+    proportional to kappa (a dead head: headings would stay uniform for the whole run). From
+    the first step the mixture weights act as a K-way classifier over directions, whose
+    gradient does not vanish.
+    """
+    return np.concatenate(
+        [np.zeros(k), _spread_directions(k).reshape(-1), np.full(k, _spread_log_kappa(k))]
+    ).astype(np.float32)
+
+
+def initial_velocity_bias(k: int) -> np.ndarray:
+    """Initial bias of the raw velocity output (layout of `velocity_params_size`): equal
+    weights; moving components with log speeds evenly spread over `INIT_LOG_SPEED_RANGE`,
+    each as wide as the spacing, and directions spread as in `initial_heading_bias`."""
+    m = velocity_components(k) - 1
+    lo, hi = INIT_LOG_SPEED_RANGE
+    mu = np.linspace(lo, hi, m) if m > 1 else np.array([0.5 * (lo + hi)])
+    log_sigma = math.log((hi - lo) / m)
+    return np.concatenate(
+        [
+            np.zeros(m + 1),
+            mu,
+            np.full(m, log_sigma),
+            _spread_directions(m).reshape(-1),
+            np.full(m, _spread_log_kappa(m)),
+        ]
+    ).astype(np.float32)
 
 
 BOX_PARAMS = box_params_size

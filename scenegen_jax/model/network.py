@@ -15,6 +15,7 @@ from __future__ import annotations
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from scenegen_jax.config import Config
 from scenegen_jax.raster.actors import ACTOR_CHANNELS, window_origin, window_size
@@ -91,6 +92,24 @@ def group_norm(x, groups: int, scale, bias, eps: float = 1e-5):
 
     centred = x - group_mean(x)
     return centred * (jax.lax.rsqrt(group_mean(jnp.square(centred)) + eps) * scale) + bias
+
+
+def _attribute_bias(k: int):
+    """Initialiser of the last attribute layer's bias [n, out]: box zeros, then the heading
+    and velocity starts of `distributions.params` (near-uniform, evenly spread mixtures)."""
+    from scenegen_jax.distributions import params as P
+
+    row = np.concatenate(
+        [np.zeros(P.box_params_size(k)), P.initial_heading_bias(k), P.initial_velocity_bias(k)]
+    )
+
+    def f(key, shape, dtype=jnp.float32):
+        del key
+        if shape[-1] != row.shape[0]:
+            raise ValueError(f"attribute bias: shape {shape} does not end in {row.shape[0]}")
+        return jnp.broadcast_to(jnp.asarray(row, dtype), shape)
+
+    return f
 
 
 def _stacked(init, n: int):
@@ -218,7 +237,7 @@ class SceneGenNet(nn.Module):
         self.attr_b = [
             self.param("attr0_b", zeros, (n, h)),
             self.param("attr1_b", zeros, (n, h)),
-            self.param("attr2_b", zeros, (n, out)),
+            self.param("attr2_b", _attribute_bias(cfg.num_mixtures), (n, out)),
         ]
 
     # ------------------------------------------------------------------ recurrence

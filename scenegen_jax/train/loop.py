@@ -29,6 +29,7 @@ from scenegen_jax.train.data import (
     union_indices,
 )
 from scenegen_jax.train.step import (
+    VEHICLE_TERMS,
     TrainState,
     check_batch,
     compile_train_step,
@@ -48,11 +49,12 @@ def save_or_check_config(workdir: str, cfg: Config) -> None:
     path = os.path.join(workdir, CONFIG_FILE)
     if os.path.exists(path):
         with open(path) as f:
-            saved = Config.from_json(f.read())
+            saved = Config.from_json(f.read(), path)
         if saved != cfg:
             raise ValueError(
-                f"{path}: this workdir was trained with a different config; use a new --workdir "
-                f"or the same config and overrides"
+                f"{path}: this workdir was trained with a different config "
+                f"({'; '.join(saved.differences(cfg))}, saved != requested); use a new "
+                f"--workdir or the same config and overrides"
             )
         return
     with open(path, "w") as f:
@@ -108,7 +110,7 @@ def load_workdir_config(workdir: str) -> Config:
     if not os.path.isfile(path):
         raise FileNotFoundError(f"{path}: not a training workdir (no {CONFIG_FILE})")
     with open(path) as f:
-        return Config.from_json(f.read())
+        return Config.from_json(f.read(), path)
 
 
 def summarize(stats: dict) -> dict:
@@ -119,6 +121,10 @@ def summarize(stats: dict) -> dict:
     for name in CLASS_NAMES:
         count = float(stats[f"count_{name}"])
         out[f"nll_per_{name}"] = float(stats[f"nll_sum_{name}"]) / count if count else None
+    vehicles = float(stats["count_vehicle"])
+    for k in VEHICLE_TERMS:
+        total = float(stats[f"nll_{k}_sum_vehicle"])
+        out[f"{k}_per_vehicle"] = total / vehicles if vehicles else None
     out["nll_stop"] = float(stats["nll_sum_stop"]) / scenes
     return out
 
@@ -242,6 +248,8 @@ def load_trained(workdir: str, step: int | None = None) -> tuple[Config, TrainSt
     """(config, train state) of a training workdir: the latest readable checkpoint, or the
     one saved at `step`."""
     cfg = load_workdir_config(workdir)
+    if not os.path.isdir(os.path.join(workdir, "checkpoints")):
+        raise FileNotFoundError(f"{workdir}/checkpoints: no checkpoints (train this workdir first)")
     ckpt = Checkpointer(os.path.join(workdir, "checkpoints"), every=1)
     state = ckpt.restore_latest(jax.eval_shape(lambda: init_state(cfg)), step)
     ckpt.close()

@@ -16,8 +16,11 @@ from scenegen_jax.config import Config
 from scenegen_jax.distributions import TERMS
 from scenegen_jax.model.network import init_params
 from scenegen_jax.raster.transform import scene_from_cached
-from scenegen_jax.scene import CLASS_NAMES, STOP, Actors
+from scenegen_jax.scene import CLASS_NAMES, STOP, VEHICLE, Actors
 from scenegen_jax.train.unroll import unroll_terms, unroll_terms_and_grads
+
+# Terms logged per vehicle (the learning curves of the attributes).
+VEHICLE_TERMS = ("location", "box", "heading", "velocity")
 
 
 class TrainState(NamedTuple):
@@ -84,6 +87,9 @@ def nll_metrics(terms: dict, step_valid, step_cls) -> tuple[jnp.ndarray, dict]:
         m = step_valid & (step_cls == c)
         stats[f"nll_sum_{name}"] = -jnp.sum(jnp.where(m, total, 0.0))
         stats[f"count_{name}"] = jnp.sum(m)
+    vehicle = step_valid & (step_cls == VEHICLE)
+    for k in VEHICLE_TERMS:
+        stats[f"nll_{k}_sum_vehicle"] = -jnp.sum(jnp.where(vehicle, terms[k], 0.0))
     stats["nll_sum_stop"] = -jnp.sum(jnp.where(step_cls == STOP, total, 0.0) * step_valid)
     stats["scenes"] = jnp.asarray(scene_nll.shape[0])
     return scene_nll, stats

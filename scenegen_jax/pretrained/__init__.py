@@ -1,0 +1,131 @@
+"""Trained models shipped with the package, and the file format they are shipped in.
+
+A pretrained model is a directory holding exactly three files:
+
+  config.json     the `Config` it was trained with (`Config.to_json`)
+  params.msgpack  its parameters, serialised by `flax.serialization` (msgpack: plain arrays,
+                  loading runs no code from the file)
+  manifest.json   {"sha256": of params.msgpack, "parameters": count, "step": training step,
+                   "source": the workdir it was exported from}
+
+and a human-readable `MODEL_CARD.md` beside them. `load_pretrained(name)` finds `name` among
+the directories of this package (`available()`), or takes a path to such a directory,
+verifies the checksum and every array's shape against the config's model, and returns
+(config, parameters): no training state, no optimizer.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+
+import jax
+import numpy as np
+from flax import serialization
+from flax.traverse_util import flatten_dict
+
+from scenegen_jax.config import Config
+from scenegen_jax.model.network import init_params
+
+PACKAGE_DIR = os.path.dirname(os.path.abspath(__file__))
+CONFIG_FILE = "config.json"
+PARAMS_FILE = "params.msgpack"
+MANIFEST_FILE = "manifest.json"
+
+
+def available() -> list[str]:
+    """Names of the pretrained models installed with the package."""
+    return sorted(
+        d for d in os.listdir(PACKAGE_DIR)
+        if os.path.isfile(os.path.join(PACKAGE_DIR, d, MANIFEST_FILE))
+    )
+
+
+def resolve(name_or_dir: str) -> str:
+    """The directory of a shipped model name, or `name_or_dir` itself if it is one.
+
+    Raises:
+      FileNotFoundError naming the installed models when neither exists.
+    """
+    if os.path.isfile(os.path.join(name_or_dir, MANIFEST_FILE)):
+        return name_or_dir
+    path = os.path.join(PACKAGE_DIR, name_or_dir)
+    if os.sep not in name_or_dir and os.path.isfile(os.path.join(path, MANIFEST_FILE)):
+        return path
+    raise FileNotFoundError(
+        f"{name_or_dir}: no pretrained model of that name or directory with {MANIFEST_FILE}; "
+        f"installed: {available() or 'none'}"
+    )
+
+
+def _sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def save_pretrained(directory: str, cfg: Config, params, step: int, source: str) -> dict:
+    """Writes `params` of a model of config `cfg` as a pretrained model directory; returns
+    the manifest. Overwrites the three files of an existing one."""
+    params = jax.device_get(params)
+    data = serialization.to_bytes(params)
+    manifest = {
+        "sha256": _sha256(data),
+        "parameters": int(sum(np.size(x) for x in jax.tree.leaves(params))),
+        "step": int(step),
+        "source": source,
+    }
+    os.makedirs(directory, exist_ok=True)
+    with open(os.path.join(directory, CONFIG_FILE), "w") as f:
+        f.write(cfg.to_json() + "\n")
+    with open(os.path.join(directory, PARAMS_FILE), "wb") as f:
+        f.write(data)
+    with open(os.path.join(directory, MANIFEST_FILE), "w") as f:
+        json.dump(manifest, f, indent=1)
+        f.write("\n")
+    return manifest
+
+
+def load_pretrained(name_or_dir: str) -> tuple[Config, dict, dict]:
+    """(config, parameters, manifest) of a shipped model name or a pretrained directory.
+
+    Raises:
+      FileNotFoundError: no such model (the message lists the installed ones).
+      ValueError naming the file: a checksum mismatch (damaged or edited parameters), or a
+        parameter missing or of the wrong shape for the config's model.
+    """
+    directory = resolve(name_or_dir)
+    paths = {k: os.path.join(directory, k) for k in (CONFIG_FILE, PARAMS_FILE, MANIFEST_FILE)}
+    try:
+        with open(paths[MANIFEST_FILE]) as f:
+            manifest = json.load(f)
+        with open(paths[CONFIG_FILE]) as f:
+            cfg = Config.from_json(f.read(), paths[CONFIG_FILE])
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{paths[MANIFEST_FILE]}: not valid JSON ({e})") from e
+    with open(paths[PARAMS_FILE], "rb") as f:
+        data = f.read()
+    if _sha256(data) != manifest.get("sha256"):
+        raise ValueError(
+            f"{paths[PARAMS_FILE]}: sha256 differs from {MANIFEST_FILE}'s (damaged or edited)"
+        )
+    template = jax.eval_shape(lambda: init_params(cfg, jax.random.key(0)))
+    try:
+        raw = serialization.msgpack_restore(data)
+    except Exception as e:  # msgpack raises several types for malformed bytes
+        raise ValueError(f"{paths[PARAMS_FILE]}: not a msgpack parameter file ({e})") from e
+    want = flatten_dict(template, sep="/")
+    got = flatten_dict(raw, sep="/")
+    for path, spec in want.items():
+        if path not in got:
+            raise ValueError(f"{paths[PARAMS_FILE]}: parameter {path} is missing")
+        if np.shape(got[path]) != spec.shape:
+            raise ValueError(
+                f"{paths[PARAMS_FILE]}: parameter {path} has shape {np.shape(got[path])}, "
+                f"the config's model needs {spec.shape}"
+            )
+    extra = sorted(set(got) - set(want))
+    if extra:
+        raise ValueError(f"{paths[PARAMS_FILE]}: parameters the model does not have: {extra}")
+    params = serialization.from_state_dict(template, raw)
+    params = jax.tree.map(lambda x, s: np.asarray(x, s.dtype), params, template)
+    return cfg, params, manifest

@@ -1,0 +1,93 @@
+"""Config values are validated in one place: every bad `--set` value or damaged config.json
+ends in one error naming the field (and the file), never a traceback or a silent change."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import pytest
+
+from scenegen_jax.config import PRESETS, Config, get_config
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ({"gn_groups": "5"}, "gn_groups: must divide hidden"),
+        ({"bptt_window": "0"}, "bptt_window: must be an integer >= 1"),
+        ({"batch_size": "0"}, "batch_size: must be an integer >= 1"),
+        ({"max_actors": "0"}, "max_actors: must be an integer >= 1"),
+        ({"rotate_augment": "ture"}, "rotate_augment: must be true or false"),
+        ({"remat": "1"}, "remat: must be true or false"),
+        ({"learning_rate": "fast"}, "learning_rate: expected float"),
+        ({"learning_rate": "-1e-3"}, "learning_rate: must be a finite number > 0"),
+        ({"grad_clip": "nan"}, "grad_clip: must be a finite number >= 0"),
+        ({"map_dropout": "1.5"}, "map_dropout: must be in"),
+        ({"map_layers": "lanes,roads"}, "map_layers: unknown groups"),
+        ({"ego_size_m": "2"}, "ego_size_m: must be two numbers"),
+        ({"colour": "red"}, "unknown config field 'colour'"),
+    ],
+)
+def test_bad_overrides_name_the_field(override, message):
+    with pytest.raises(ValueError, match=message):
+        get_config("tiny", **override)
+
+
+def test_booleans_parse_exactly():
+    assert get_config("tiny", rotate_augment="false").rotate_augment is False
+    assert get_config("tiny", remat="True").remat is True
+
+
+@pytest.mark.parametrize("name", sorted(PRESETS))
+def test_presets_roundtrip_through_json(name):
+    cfg = PRESETS[name]
+    assert Config.from_json(cfg.to_json()) == cfg
+
+
+def test_damaged_config_json_names_the_file_and_field():
+    text = get_config("tiny").to_json()
+    with pytest.raises(ValueError, match="w/config.json: not valid JSON"):
+        Config.from_json(text[: len(text) // 2], "w/config.json")
+    d = json.loads(text)
+    with pytest.raises(ValueError, match=r"w/config.json: unknown config field\(s\) \['bogus'\]"):
+        Config.from_json(json.dumps({**d, "bogus": 1}), "w/config.json")
+    with pytest.raises(ValueError, match="w/config.json: field hidden: expected int"):
+        Config.from_json(json.dumps({**d, "hidden": "16"}), "w/config.json")
+    with pytest.raises(ValueError, match="w/config.json: invalid config: gn_groups"):
+        Config.from_json(json.dumps({**d, "gn_groups": 5}), "w/config.json")
+
+
+def test_config_mismatch_names_the_fields(tmp_path):
+    from scenegen_jax.train.loop import save_or_check_config
+
+    workdir = str(tmp_path / "wd")
+    save_or_check_config(workdir, get_config("tiny"))
+    with pytest.raises(ValueError, match=r"learning_rate: 0.001 != 0.002.*seed: 0 != 3"):
+        save_or_check_config(workdir, get_config("tiny", learning_rate="2e-3", seed="3"))
+
+
+def test_loading_a_workdir_without_checkpoints_creates_nothing(tmp_path):
+    from scenegen_jax.train.loop import load_trained, save_or_check_config
+
+    workdir = str(tmp_path / "wd")
+    save_or_check_config(workdir, get_config("tiny"))
+    with pytest.raises(FileNotFoundError, match="no checkpoints"):
+        load_trained(workdir)
+    assert os.listdir(workdir) == ["config.json"]
+
+
+def test_cli_rejects_zero_sizes_before_any_work(caplog):
+    from scenegen_jax.cli import main
+
+    with pytest.raises(SystemExit, match="--batch-size must be >= 1"):
+        main(["score", "--workdir", "nowhere", "--data", "nowhere", "--out", "x.csv",
+              "--batch-size", "0"])
+    with pytest.raises(SystemExit, match="--num must be >= 1"):
+        main(["evaluate", "--workdir", "nowhere", "--data", "x", "--train-data", "y",
+              "--num", "0", "--out", "r.json"])
+    with pytest.raises(SystemExit) as e:
+        main(["train", "--config", "tiny", "--data", "nowhere", "--workdir", "nowhere",
+              "--set", "gn_groups=5"])
+    assert e.value.code == 2
+    assert "gn_groups: must divide hidden" in caplog.text

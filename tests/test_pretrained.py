@@ -1,0 +1,84 @@
+"""Pretrained models: the exported directory restores the same parameters, refuses damaged or
+mismatched files with the file's name, and `--pretrained` samples what `--workdir` samples."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import jax
+import numpy as np
+import pytest
+
+from scenegen_jax.config import get_config
+from scenegen_jax.pretrained import (
+    PARAMS_FILE,
+    available,
+    load_pretrained,
+    save_pretrained,
+)
+from scenegen_jax.train.step import init_state
+
+TINY = get_config("tiny")
+
+
+def _assert_same_tree(a, b):
+    assert jax.tree.structure(a) == jax.tree.structure(b)
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+        assert x.dtype == y.dtype
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_roundtrip_is_bit_exact(tmp_path):
+    params = init_state(TINY, seed=3).params
+    manifest = save_pretrained(str(tmp_path / "m"), TINY, params, step=7, source="here")
+    cfg, restored, got = load_pretrained(str(tmp_path / "m"))
+    assert cfg == TINY and got == manifest and got["step"] == 7
+    assert got["parameters"] == sum(np.size(x) for x in jax.tree.leaves(params))
+    _assert_same_tree(params, restored)
+
+
+def test_damaged_or_mismatched_files_name_the_file(tmp_path):
+    d = tmp_path / "m"
+    save_pretrained(str(d), TINY, init_state(TINY).params, step=1, source="here")
+    path = d / PARAMS_FILE
+    good = path.read_bytes()
+    damaged = bytearray(good)
+    damaged[len(damaged) // 2] ^= 0x40
+    path.write_bytes(bytes(damaged))
+    with pytest.raises(ValueError, match=f"{path}: sha256 differs"):
+        load_pretrained(str(d))
+    path.write_bytes(good)
+    # A config whose model has other shapes than the saved parameters.
+    (d / "config.json").write_text(TINY.replace(hidden=8, gn_groups=2).to_json())
+    with pytest.raises(ValueError, match=f"{path}: parameter .* has shape"):
+        load_pretrained(str(d))
+    with pytest.raises(FileNotFoundError, match="no pretrained model of that name"):
+        load_pretrained("no-such-model")
+
+
+@pytest.mark.parametrize("name", available())
+def test_shipped_models_load(name):
+    cfg, params, manifest = load_pretrained(name)
+    assert manifest["step"] > 0
+    assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(params))
+    here = os.path.dirname(os.path.abspath(__file__))
+    card = os.path.join(here, "..", "scenegen_jax", "pretrained", name, "MODEL_CARD.md")
+    assert os.path.isfile(card), f"{name}: no model card"
+    assert cfg.name
+
+
+@pytest.mark.slow
+def test_cli_pretrained_samples_as_the_workdir(tmp_path, tiny_train_cache, capsys):
+    from scenegen_jax.cli import main
+    from scenegen_jax.train.loop import train
+
+    workdir, model = str(tmp_path / "wd"), str(tmp_path / "model")
+    train(TINY, tiny_train_cache.path, workdir, steps=2, progress=False)
+    main(["export-model", "--workdir", workdir, "--out", model])
+    assert json.loads(capsys.readouterr().out)["step"] == 2
+    common = ["--data", tiny_train_cache.path, "--num", "2", "--seed", "1", "--batch-size", "1"]
+    main(["sample", "--workdir", workdir, "--out", str(tmp_path / "a"), *common])
+    main(["sample", "--pretrained", model, "--out", str(tmp_path / "b"), *common])
+    a = (tmp_path / "a" / "scenes.jsonl").read_text()
+    assert a and a == (tmp_path / "b" / "scenes.jsonl").read_text()
