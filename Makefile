@@ -16,13 +16,14 @@ $(VENV)/.installed: pyproject.toml
 	$(BIN)/pip install -q -e '.[test]'
 	touch $@
 
-# Two pytest workers (one per core of the 2-core machines we test on; TEST_WORKERS=0 runs
+# Two pytest workers (one per core of the 2-core machines we test on), each taking whole
+# modules so that module fixtures are built once; TEST_WORKERS=0 runs
 # in this process); the suite's wall time is printed at the end.
 TEST_WORKERS ?= 2
 
 test: install
 	@start=$$(date +%s); \
-	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --durations=15; rc=$$?; \
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadscope --durations=15; rc=$$?; \
 	echo "make test: $$(( $$(date +%s) - start )) s wall"; exit $$rc
 
 lint: install

@@ -25,3 +25,18 @@ def two_small_scenes(cache) -> np.ndarray:
     few = np.flatnonzero(inside.sum(1) <= CFG.max_actors)
     assert len(few) >= 2
     return few[:2]
+
+
+def random_params(cfg, key):
+    """`init_params` with the location output layer (zero at initialisation: flat logits) drawn
+    at random, so that tests comparing two computations of the location logits and their
+    gradients compare non-trivial values."""
+    import jax
+
+    from scenegen_jax.model.network import init_params
+
+    init_key, loc_key = jax.random.split(key)
+    params = dict(init_params(cfg, init_key))
+    w = params["loc2_w"]
+    params["loc2_w"] = jax.random.normal(loc_key, w.shape, w.dtype) / np.sqrt(w.shape[-2])
+    return params

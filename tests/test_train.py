@@ -13,12 +13,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from small import CFG, two_small_scenes
+from small import CFG, random_params, two_small_scenes
 
 from scenegen_jax.model.network import (
     SceneGenNet,
     group_norm,
-    init_params,
     lstm_gates,
     lstm_gates_reference,
 )
@@ -67,7 +66,7 @@ def test_fast_unroll_equals_plain_reference(tiny_train_cache, small_scenes, chun
         monkeypatch.setattr(unroll, "HEAD_CHUNK_BYTES", chunk_bytes)
     monkeypatch.setattr(unroll, "compiled_step_loop", lambda: step_loop)
     cfg = CFG.replace(bptt_window=16)  # one window: the reference has no truncation either
-    params = init_params(cfg, jax.random.key(1))
+    params = random_params(cfg, jax.random.key(1))
     maps, scene = crop_batch(_batch(tiny_train_cache, small_scenes), jnp.array([0.0, 1.0]), cfg)
     fast, valid, _ = jax.jit(lambda p: unroll_terms(p, cfg, maps, scene, None))(params)
     ref = reference_step_terms(params, cfg, maps, scene, None)
@@ -103,7 +102,7 @@ def test_remat_gives_the_same_loss_and_gradients(tiny_train_cache, small_scenes,
     monkeypatch.setattr(unroll, "HEAD_CHUNK_BYTES", 3 * 2 * 32 * 32 * 8 * 4)
     monkeypatch.setattr(unroll, "compiled_step_loop", lambda: step_loop)
     maps, scene = crop_batch(_batch(tiny_train_cache, small_scenes), jnp.array([0.0, 1.0]), CFG)
-    params = init_params(CFG, jax.random.key(2))
+    params = random_params(CFG, jax.random.key(2))
 
     def loss(p, remat):
         cfg = CFG.replace(bptt_window=8, remat=remat)
@@ -129,7 +128,7 @@ def test_window_by_window_gradient_equals_autodiff(tiny_train_cache, small_scene
     cfg = CFG.replace(bptt_window=5, remat=remat)
     assert num_windows(cfg) == 4
     maps, scene = crop_batch(_batch(tiny_train_cache, small_scenes), jnp.array([0.5, 2.0]), cfg)
-    params = init_params(cfg, jax.random.key(4))
+    params = random_params(cfg, jax.random.key(4))
     (loss, stats), grads = jax.jit(jax.value_and_grad(loss_fn, has_aux=True), static_argnums=1)(
         params, cfg, maps, scene)
     monkeypatch.setattr(unroll, "compiled_window_loop", lambda: compiled_loop)
@@ -154,7 +153,7 @@ def test_window_by_window_gradient_equals_autodiff(tiny_train_cache, small_scene
 
 def test_location_head_single_example_path_agrees(tiny_train_cache):
     cfg = CFG
-    params = init_params(cfg, jax.random.key(4))
+    params = random_params(cfg, jax.random.key(4))
     f = jax.random.normal(jax.random.key(5), (3, cfg.grid_size, cfg.grid_size, cfg.hidden))
     cls = jnp.array([2, 0, 1])
     net = SceneGenNet(cfg)
@@ -220,7 +219,7 @@ def test_group_norm_matches_flax():
 
 
 def test_truncation_cuts_gradients_between_windows(tiny_train_cache, small_scenes):
-    params = init_params(CFG, jax.random.key(2))
+    params = random_params(CFG, jax.random.key(2))
     maps, scene = crop_batch(_batch(tiny_train_cache, small_scenes), jnp.zeros(2), CFG)
 
     def window_loss(p, lo, hi):
@@ -270,7 +269,7 @@ def test_empty_scene_is_one_stop_step(tiny_train_cache, small_scenes):
     batch = _batch(tiny_train_cache, small_scenes)
     empty = batch.actors.replace(valid=np.zeros_like(batch.actors.valid))
     batch = Batch(batch.canvas, empty, batch.ego)
-    params = init_params(CFG, jax.random.key(3))
+    params = random_params(CFG, jax.random.key(3))
     maps, scene = crop_batch(batch, jnp.zeros(2), CFG)
     terms, valid, cls = unroll_terms(params, CFG, maps, scene, CFG.hard_negatives)
     assert np.asarray(valid).sum(1).tolist() == [1, 1]

@@ -214,7 +214,8 @@ class SceneGenNet(nn.Module):
         self.loc_w = [
             self.param("loc0_w", _stacked(conv_init, n), (n, 3, 3, h, h)),
             self.param("loc1_w", _stacked(conv_init, n), (n, 3, 3, h, h)),
-            self.param("loc2_w", _stacked(conv_init, n), (n, 1, 1, h, 1)),
+            # Zero: the location logits start flat (see `location_logits`).
+            self.param("loc2_w", zeros, (n, 1, 1, h, 1)),
         ]
         self.loc_b = [
             self.param("loc0_b", zeros, (n, h)),
@@ -334,6 +335,12 @@ class SceneGenNet(nn.Module):
         the sampler's rollout) runs plain convolutions with that class's kernels, XLA:CPU's
         fastest (under vmap they become a grouped convolution); otherwise
         `conv_per_example`. All give the same values.
+
+        The last layer's weights start at zero, so an untrained model's location distribution
+        is uniform. With random logits instead, the quickest early gain is to shrink their
+        spread, which training did by silencing the backbone (its ReLU channels went dead,
+        `experiments/probe_features.py`), leaving every later term without features; from
+        flat logits every gradient step adds structure that the data supports.
         """
         cls = jnp.clip(cls, 0, NUM_CLASSES - 1)
 

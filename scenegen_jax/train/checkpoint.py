@@ -1,24 +1,63 @@
 """Orbax checkpoints of the train state: periodic saves, keep the last few, resume from the
-latest readable one (a corrupt or half-written latest is reported and skipped)."""
+latest good one.
+
+Every saved step carries the sha256 of each array (`CHECKSUM_FILE` in the step's folder),
+verified when it is restored, so flipped bytes inside a parameter file are caught rather than
+loaded. In a training run (`heal=True`) a step that does not restore or verify is set aside:
+moved to `<checkpoints>.damaged/<step>-<time>` with a warning naming both paths, so that it
+neither blocks the save of the same step later nor takes one of the `keep` slots. Orbax's
+temporary folders left by a killed save are removed when a training run opens the folder.
+"""
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
 import os
+import shutil
+import time
 
 import jax
+import numpy as np
 import orbax.checkpoint as ocp
 
 from scenegen_jax.train.step import TrainState
 
 log = logging.getLogger(__name__)
+CHECKSUM_FILE = "scenegen_sha256.json"
+TMP_MARKER = ".orbax-checkpoint-tmp"
+
+
+def tree_checksums(tree) -> dict[str, str]:
+    """sha256 of every array of `tree` (dtype, shape and bytes), keyed by its path."""
+    out = {}
+    for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]:
+        if jax.dtypes.issubdtype(getattr(leaf, "dtype", None), jax.dtypes.prng_key):
+            leaf = jax.random.key_data(leaf)
+        x = np.ascontiguousarray(jax.device_get(leaf))
+        h = hashlib.sha256(f"{x.dtype.str}{x.shape}".encode())
+        h.update(x.tobytes())
+        out[jax.tree_util.keystr(path)] = h.hexdigest()
+    return out
+
+
+class DamagedCheckpoint(Exception):
+    """A saved step whose arrays differ from the checksums written with them."""
 
 
 class Checkpointer:
-    """Saves every `every` steps into `directory`, keeping the newest `keep`."""
+    """Saves every `every` steps into `directory`, keeping the newest `keep`.
 
-    def __init__(self, directory: str, every: int, keep: int = 3):
+    `heal`: a training run's checkpointer; it removes orbax temporaries and sets damaged
+    steps aside. Readers (score, sample) leave the folder as it is and only skip them.
+    """
+
+    def __init__(self, directory: str, every: int, keep: int = 3, heal: bool = False):
         self.directory = os.path.abspath(directory)
+        self.heal = heal
+        if heal:
+            self._remove_temporaries()
         self.manager = ocp.CheckpointManager(
             self.directory,
             options=ocp.CheckpointManagerOptions(
@@ -29,14 +68,52 @@ class Checkpointer:
             ),
         )
 
+    def _remove_temporaries(self) -> None:
+        if not os.path.isdir(self.directory):
+            return
+        for name in sorted(os.listdir(self.directory)):
+            if TMP_MARKER in name:
+                log.warning("%s: removing an unfinished save (%s)", self.directory, name)
+                shutil.rmtree(os.path.join(self.directory, name), ignore_errors=True)
+
     def save(self, state: TrainState, force: bool = False) -> bool:
         """Saves if the step is due (or `force`); returns whether it saved."""
-        return self.manager.save(
-            int(state.step), args=ocp.args.StandardSave(state._asdict()), force=force
-        )
+        step = int(state.step)
+        saved = self.manager.save(step, args=ocp.args.StandardSave(state._asdict()), force=force)
+        if saved:
+            self.manager.wait_until_finished()
+            path = os.path.join(self.directory, str(step), CHECKSUM_FILE)
+            with open(path + ".tmp", "w") as f:
+                json.dump(tree_checksums(state._asdict()), f)
+            os.replace(path + ".tmp", path)
+        return saved
+
+    def _verify(self, step: int, restored: dict) -> None:
+        path = os.path.join(self.directory, str(step), CHECKSUM_FILE)
+        if not os.path.isfile(path):
+            log.warning("%s: no checksums (saved by an older version); not verified", path)
+            return
+        try:
+            with open(path) as f:
+                want = json.load(f)
+        except (OSError, json.JSONDecodeError) as e:
+            raise DamagedCheckpoint(f"{path}: unreadable checksums ({e})") from e
+        got = tree_checksums(restored)
+        bad = sorted(k for k in set(want) | set(got) if want.get(k) != got.get(k))
+        if bad:
+            raise DamagedCheckpoint(f"{path}: arrays differ from their checksums: {bad[:5]}")
+
+    def _set_aside(self, step: int) -> None:
+        src = os.path.join(self.directory, str(step))
+        dst = os.path.join(self.directory + ".damaged", f"{step}-{time.strftime('%Y%m%dT%H%M%S')}")
+        os.makedirs(os.path.dirname(dst), exist_ok=True)
+        os.rename(src, dst)
+        self.manager.reload()
+        log.warning("%s: damaged checkpoint moved to %s", src, dst)
 
     def restore_latest(self, template: TrainState, step: int | None = None) -> TrainState | None:
-        """The newest checkpoint that restores cleanly, or None when there is none.
+        """The newest checkpoint that restores cleanly and matches its checksums, or None when
+        there is none.
 
         With `step`, that checkpoint only (ValueError naming the saved steps if it is not
         there; None if it does not restore).
@@ -52,14 +129,18 @@ class Checkpointer:
         for step in steps:
             try:
                 restored = self.manager.restore(step, args=ocp.args.StandardRestore(abstract))
+                self._verify(step, restored)
             except Exception as e:  # orbax raises many types for damaged files
                 log.warning(
-                    "%s: checkpoint at step %d is unreadable (%s: %s); trying the previous one",
+                    "%s: checkpoint at step %d is unreadable or damaged (%s: %s); trying the "
+                    "previous one",
                     self.directory,
                     step,
                     type(e).__name__,
                     str(e)[:200],
                 )
+                if self.heal:
+                    self._set_aside(step)
                 continue
             log.info("%s: restored the checkpoint of step %d", self.directory, step)
             return TrainState(**restored)

@@ -104,6 +104,28 @@ def save_or_check_data(workdir: str, union: CacheUnion, weights=None) -> dict:
     return saved
 
 
+def drop_metrics_after(path: str, step: int) -> None:
+    """Removes the rows of steps after `step` from a metrics file (a resumed run replays
+    them), so that it keeps one row per logged step."""
+    if not os.path.isfile(path):
+        return
+    with open(path) as f:
+        lines = f.readlines()
+    keep = []
+    for line in lines:
+        try:
+            if json.loads(line)["step"] <= step:
+                keep.append(line)
+        except (json.JSONDecodeError, KeyError, TypeError):
+            pass  # a row cut short by a kill: replayed
+    if len(keep) != len(lines):
+        log.info("%s: dropping %d rows after step %d (replayed)", path, len(lines) - len(keep),
+                 step)
+        with open(path + ".tmp", "w") as f:
+            f.writelines(keep)
+        os.replace(path + ".tmp", path)
+
+
 def load_workdir_config(workdir: str) -> Config:
     """The config a workdir was trained with."""
     path = os.path.join(workdir, CONFIG_FILE)
@@ -159,7 +181,7 @@ def train(
     mesh = make_mesh()
     step_fn = None  # compiled for the first batch's shapes (every batch has the same)
     data_sharding = NamedSharding(mesh, P("data"))
-    ckpt = Checkpointer(os.path.join(workdir, "checkpoints"), save_every, keep)
+    ckpt = Checkpointer(os.path.join(workdir, "checkpoints"), save_every, keep, heal=True)
     state = init_state(cfg)
     restored = ckpt.restore_latest(state)
     if restored is not None:
@@ -171,6 +193,7 @@ def train(
     state = jax.device_put(state, NamedSharding(mesh, P()))
     start = int(state.step)
     metrics_path = os.path.join(workdir, "metrics.jsonl")
+    drop_metrics_after(metrics_path, start)
     # With a time budget the budget usually ends the run, not the step count: no step ETA.
     budget = None if max_seconds is None else (
         "{desc}: {n_fmt}/{total_fmt} steps [{elapsed} of a "
