@@ -195,6 +195,41 @@ def _render_worst(scores, cache, cfg, k: int, out_dir: str) -> list[str]:
     return paths
 
 
+def read_given(path: str, cfg: Config, scene_ego_sizes, allow_overlap: bool = False) -> list:
+    """Given actors (numpy Actors [N]) of each non-blank line of a `sample --given` file.
+
+    Line j of L lines conditions scenes j, j + L, ...; `scene_ego_sizes` [num scenes, 2]
+    (width, length) m are the egos of the scenes to sample, so each line's boxes are checked
+    against the egos it meets (and each other) unless `allow_overlap`. Errors name the file,
+    the line and the field.
+    """
+    import numpy as np
+
+    from scenegen_jax.sampling import actors_from_records
+
+    rows = []
+    with open(path) as f:
+        for line_no, line in enumerate(f, 1):
+            if not line.strip():
+                continue
+            where = f"{path}:{line_no}"
+            try:
+                row = json.loads(line)
+            except json.JSONDecodeError as e:
+                raise ValueError(f"{where}: not JSON ({e})") from e
+            if not isinstance(row, dict) or "actors" not in row:
+                raise ValueError(f'{where}: actors: missing (expected {{"actors": [...]}})')
+            rows.append((where, row["actors"]))
+    if not rows:
+        raise ValueError(f"{path}: no given scenes")
+    sizes = np.asarray(scene_ego_sizes, np.float64).reshape(-1, 2)
+    return [
+        actors_from_records(records, cfg, where, np.unique(sizes[j :: len(rows)], axis=0),
+                            allow_overlap)
+        for j, (where, records) in enumerate(rows)
+    ]
+
+
 def cmd_sample(args) -> None:
     """Samples scenes on the maps and egos of cache scenes; writes JSON lines, ScenarioNet
     pickles, PNGs and (with --heatmaps) per-step location heatmaps."""
@@ -209,7 +244,6 @@ def cmd_sample(args) -> None:
         HEATMAP_STEPS,
         STOP_REASONS,
         actor_records,
-        actors_from_records,
         batch_inputs,
         frame_from_sample,
         sample_split,
@@ -231,20 +265,9 @@ def cmd_sample(args) -> None:
             raise IndexError(f"{cache.path}: --index {i} out of range [0, {len(cache)})")
     given_lines = []
     if args.given:
-        with open(args.given) as f:
-            for line_no, line in enumerate(f, 1):
-                if not line.strip():
-                    continue
-                where = f"{args.given}:{line_no}"
-                try:
-                    row = json.loads(line)
-                except json.JSONDecodeError as e:
-                    raise ValueError(f"{where}: not JSON ({e})") from e
-                if not isinstance(row, dict) or "actors" not in row:
-                    raise ValueError(f'{where}: actors: missing (expected {{"actors": [...]}})')
-                given_lines.append(actors_from_records(row["actors"], cfg, where))
-        if not given_lines:
-            raise ValueError(f"{args.given}: no given scenes")
+        # Scene k is sampled beside the ego of cache scene indices[k mod len(indices)].
+        scene_egos = cache.ego_size[[indices[k % len(indices)] for k in range(args.num)]]
+        given_lines = read_given(args.given, cfg, scene_egos, args.allow_overlap)
     caps = np.full(NUM_CLASSES, cfg.max_actors, np.int32)
     for pair in args.cap or []:
         name, _, value = pair.partition("=")
@@ -538,6 +561,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--given",
         help="JSON lines of actors to condition on (scenes.jsonl format); "
         "scene k uses line k mod lines",
+    )
+    sp.add_argument(
+        "--allow-overlap",
+        action="store_true",
+        help="keep --given vehicle and bicyclist boxes that overlap each other or the ego "
+        "(refused by default)",
     )
     sp.add_argument("--cap", nargs="*", metavar="CLASS=N", help="max actors per class")
     sp.add_argument(

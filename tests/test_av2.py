@@ -6,6 +6,7 @@ import collections
 import glob
 import json
 import os
+import re
 import shutil
 
 import numpy as np
@@ -15,7 +16,10 @@ import pytest
 import shapely
 
 from scenegen_jax.cli import main as cli_main
-from scenegen_jax.data.av2 import CATEGORY_TO_CLASS, read_log
+from scenegen_jax.config import get_config
+from scenegen_jax.data.av2 import CATEGORY_TO_CLASS, read_log, vector_map_from_json
+from scenegen_jax.data.prepare import prepare
+from scenegen_jax.data.sources import source_spec
 from scenegen_jax.raster.map import ALL_MAP_CHANNELS, rasterize_map
 from scenegen_jax.scene import CLASS_NAMES, PEDESTRIAN, VEHICLE
 
@@ -112,10 +116,7 @@ def test_velocity_is_over_ground_not_relative(all_frames):
 # ---------------------------------------------------------------- bad input
 
 
-@pytest.fixture
-def log_copy(data_root, tmp_path):
-    src = sorted(glob.glob(os.path.join(data_root, "train", "*")))[0]
-    dst = tmp_path / os.path.basename(src)
+def _copy_log(src, dst):
     shutil.copytree(src, dst)
     os.chmod(dst, 0o755)
     for p in dst.rglob("*"):
@@ -123,11 +124,28 @@ def log_copy(data_root, tmp_path):
     return dst
 
 
+@pytest.fixture
+def log_copy(data_root, tmp_path):
+    src = sorted(glob.glob(os.path.join(data_root, "train", "*")))[0]
+    return _copy_log(src, tmp_path / os.path.basename(src))
+
+
 def _rewrite(path, fn):
+    """Rewrites a feather file with fn(columns) (in place, or the dict fn returns)."""
     table = feather.read_table(path)
     cols = {name: table.column(name).to_numpy(zero_copy_only=False) for name in table.column_names}
-    fn(cols)
+    out = fn(cols)
+    cols = out if isinstance(out, dict) else cols
     feather.write_feather(pa.table(cols), path)
+
+
+def _modelled_rows(log_dir) -> int:
+    table = feather.read_table(os.path.join(log_dir, "annotations.feather"), columns=["category"])
+    return int(
+        np.isin(
+            table.column("category").to_numpy(zero_copy_only=False), list(CATEGORY_TO_CLASS)
+        ).sum()
+    )
 
 
 def test_missing_map_file_names_the_folder(log_copy):
@@ -174,6 +192,171 @@ def test_bad_rows_are_dropped_and_counted(log_copy):
     assert sum(f.num_actors for f in frames) == baseline - 4
     for f in frames:
         assert np.all(np.isfinite(f.position)) and np.all(f.size > 0)
+
+
+def _no_rows(c):
+    return {k: v[:0] for k, v in c.items()}
+
+
+def _shift_times(c):
+    c["timestamp_ns"] = c["timestamp_ns"] + 1  # 1 ns off every ego pose
+
+
+def _all_bollards(c):
+    c["category"] = np.full(len(c["category"]), "BOLLARD")
+
+
+def _zero_pose_quaternion(c):
+    for k in ("qw", "qx", "qy", "qz"):
+        c[k] = c[k].copy()
+        c[k][3] = 0.0
+
+
+UNUSABLE_LOGS = {
+    "no_annotation_rows": (
+        "annotations.feather", _no_rows,
+        r"annotations\.feather: field timestamp_ns: no annotation rows"),
+    "no_ego_poses": (
+        "city_SE3_egovehicle.feather", _no_rows,
+        r"city_SE3_egovehicle\.feather: field timestamp_ns: no ego poses"),
+    "no_timestamp_with_a_pose": (
+        "annotations.feather", _shift_times,
+        r"annotations\.feather: field timestamp_ns: no annotated timestamp has an ego pose"),
+    "zero_pose_quaternion": (
+        "city_SE3_egovehicle.feather", _zero_pose_quaternion,
+        r"city_SE3_egovehicle\.feather: field qw/qx/qy/qz: 1 poses are not unit"),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", sorted(UNUSABLE_LOGS))
+def test_unusable_log_names_the_file_and_field(log_copy, case):
+    name, damage, message = UNUSABLE_LOGS[case]
+    _rewrite(log_copy / name, damage)
+    with pytest.raises(ValueError, match=message):
+        list(read_log(str(log_copy), collections.Counter()))
+
+
+def test_log_of_dropped_categories_gives_empty_counted_frames(log_copy):
+    timestamps = feather.read_table(log_copy / "annotations.feather").column("timestamp_ns")
+    rows, sweeps = len(timestamps), len(set(timestamps.to_pylist()))
+    _rewrite(log_copy / "annotations.feather", _all_bollards)
+    drops = collections.Counter()
+    frames = list(read_log(str(log_copy), drops))
+    assert len(frames) == sweeps and all(f.num_actors == 0 for f in frames)
+    assert drops == {"category:BOLLARD": rows}
+
+
+def test_prepare_skips_and_names_unusable_logs(data_root, tmp_path):
+    """Bad logs and an empty folder beside a good log: the split is read, each bad log is
+    counted and named with its field; --strict stops at the first."""
+    src = sorted(glob.glob(os.path.join(data_root, "train", "*")))[0]
+    split = tmp_path / "root" / "train"
+    _copy_log(src, split / "a_good")
+    _copy_log(src, split / "b_bollards")
+    _rewrite(split / "b_bollards" / "annotations.feather", _all_bollards)
+    for case, (name, damage, _) in sorted(UNUSABLE_LOGS.items()):
+        _rewrite(_copy_log(src, split / f"c_{case}") / name, damage)
+    (split / "d_empty").mkdir()
+    spec = source_spec("av2", str(tmp_path / "root"), "train", stride=10)
+    summary, _ = prepare(spec, str(tmp_path / "cache"), get_config("tiny"), workers=1)
+    frames_per_log = 16  # 156 sweeps at stride 10
+    assert summary.files == 2 + len(UNUSABLE_LOGS) + 1
+    assert summary.scenes == 2 * frames_per_log and summary.empty_scenes == frames_per_log
+    assert summary.bad_files == {"FileNotFoundError": 1, "ValueError": len(UNUSABLE_LOGS)}
+    named = {os.path.basename(b["file"]): b["error"] for b in summary.bad_file_list}
+    assert sorted(named) == sorted([f"c_{case}" for case in UNUSABLE_LOGS] + ["d_empty"])
+    for case, (_, _, message) in UNUSABLE_LOGS.items():
+        error = named[f"c_{case}"]
+        assert error.startswith(f"ValueError: {split / f'c_{case}'}/") and re.search(message, error)
+    assert named["d_empty"].endswith(f"{split / 'd_empty' / 'annotations.feather'}: file not found")
+    categories = feather.read_table(os.path.join(src, "annotations.feather")).column("category")
+    bollards = categories.to_pylist().count("BOLLARD")
+    assert summary.dropped["category:BOLLARD"] == bollards + len(categories)
+    with pytest.raises(ValueError, match=r"c_no_annotation_rows/annotations\.feather"):
+        prepare(spec, str(tmp_path / "strict"), get_config("tiny"), workers=1, strict=True)
+
+
+def test_implausible_rows_are_counted_drops(log_copy, caplog):
+    """Zero and non-unit quaternions, boxes over 30 m and duplicate (track, timestamp) rows
+    are dropped with a reason; a quaternion within the 1e-3 tolerance is kept."""
+    duplicated = {}
+
+    def corrupt(c):
+        rows = np.flatnonzero(np.isin(c["category"], list(CATEGORY_TO_CLASS)))[:6]
+        for k in ("qw", "qx", "qy", "qz", "length_m", "width_m"):
+            c[k] = c[k].copy()
+        for k in ("qw", "qx", "qy", "qz"):
+            c[k][rows[0]] = 0.0  # zero quaternion
+            c[k][rows[1]] *= 2.0  # norm 2
+            c[k][rows[5]] *= 1.0 + 5e-4  # within tolerance: kept
+        c["length_m"][rows[2]] = 1e6
+        c["width_m"][rows[3]] = 31.0
+        extra = {k: c[k][rows[4]] for k in c}  # the same track and timestamp, 5 m further on
+        duplicated.update(track=extra["track_uuid"], t=extra["timestamp_ns"], x=extra["tx_m"])
+        extra["tx_m"] += 5.0
+        for k in c:
+            c[k] = np.append(c[k], extra[k])
+
+    _rewrite(log_copy / "annotations.feather", corrupt)
+    drops = collections.Counter()
+    with caplog.at_level("WARNING", logger="scenegen_jax.data.av2"):
+        frames = list(read_log(str(log_copy), drops))
+    assert drops["invalid:quaternion"] == 2
+    assert drops["invalid:size"] == 2
+    assert drops["invalid:duplicate_row"] == 1
+    assert sum(f.num_actors for f in frames) == _modelled_rows(log_copy) - 5  # all else kept
+    (frame,) = [f for f in frames if f.scene_id.endswith(f"/{duplicated['t']}")]
+    rows = frame.track_id == duplicated["track"]
+    assert rows.sum() == 1 and frame.position[rows, 0][0] == pytest.approx(duplicated["x"])
+    for f in frames:
+        assert np.all(f.size <= 30.0)
+    logged = caplog.text
+    for reason in ("invalid:quaternion", "invalid:size", "invalid:duplicate_row"):
+        assert re.search(rf"annotations\.feather: \d+ rows dropped \({reason}\)", logged)
+
+
+def _pt(x, y):
+    return {"x": x, "y": y, "z": 0.0}
+
+
+def test_degenerate_map_polygons_are_counted_drops(log_copy, caplog):
+    (path,) = (log_copy / "map").glob("log_map_archive_*.json")
+    data = json.loads(path.read_text())
+    clean, clean_drops = vector_map_from_json(data, str(path))
+    assert clean_drops == {}
+    lane = next(iter(data["lane_segments"].values()))
+    data["drivable_areas"]["900"] = {"id": 900, "area_boundary": [_pt(0, 0), _pt(5, 0)]}
+    data["drivable_areas"]["901"] = {"id": 901, "area_boundary": [_pt(0, 0), _pt(5, 0), _pt(9, 0)]}
+    data["pedestrian_crossings"]["902"] = {
+        "edge1": [_pt(0, 0), _pt(4, 0)],
+        "edge2": [_pt(0, 0), _pt(4, 0)],
+    }
+    data["lane_segments"]["903"] = {**lane, "id": 903, "right_lane_boundary": [_pt(1, 1)]}
+    data["lane_segments"]["904"] = {
+        **lane,
+        "id": 904,
+        "right_lane_boundary": lane["left_lane_boundary"],
+    }
+    path.write_text(json.dumps(data))
+    vmap, dropped = vector_map_from_json(data, str(path))
+    assert dropped == {
+        "map:degenerate_drivable_area": 2,
+        "map:degenerate_crosswalk": 1,
+        "map:degenerate_lane": 2,
+    }
+    assert len(vmap.lanes) == len(clean.lanes)
+    assert len(vmap.crosswalks) == len(clean.crosswalks)
+    assert len(vmap.drivable_areas) == len(clean.drivable_areas)
+    # Through read_log, the map drops land in the log's counter (once per log) and the log.
+    drops = collections.Counter()
+    with caplog.at_level("WARNING", logger="scenegen_jax.data.av2"):
+        next(read_log(str(log_copy), drops))
+    assert drops["map:degenerate_drivable_area"] == 2 and drops["map:degenerate_lane"] == 2
+    assert f"{path}: 2 map elements dropped (map:degenerate_lane)" in caplog.text
+    # Malformed points are errors naming the field, not drops.
+    data["drivable_areas"]["905"] = {"area_boundary": [{"x": 1.0}]}
+    with pytest.raises(ValueError, match=r"field drivable_areas\[905\]\.area_boundary"):
+        vector_map_from_json(data, str(path))
 
 
 def test_map_polygons_match_shapely_area(all_frames):

@@ -72,6 +72,12 @@ ANNOTATION_COLUMNS = (
 POSE_COLUMNS = ("timestamp_ns", "qw", "qx", "qy", "qz", "tx_m", "ty_m", "tz_m")
 # Nominal ego footprint (Argoverse 2 vehicles), (width, length) m.
 AV2_EGO_SIZE = (1.95, 4.88)
+# Longer or wider boxes are not road users (articulated buses are ~18 m), m.
+MAX_SIZE_M = 30.0
+# Quaternions whose norm is further than this from 1 are not rotations.
+QUATERNION_NORM_TOL = 1e-3
+# Map polygons (lanes, crosswalks, drivable areas) with less area are degenerate, m^2.
+MIN_POLYGON_AREA_M2 = 1e-6
 
 
 def list_logs(root: str, split: str) -> list[str]:
@@ -147,8 +153,8 @@ def finite_difference(t_s: np.ndarray, values: np.ndarray, max_gap_s: float = 0.
     return out
 
 
-def read_map(log_dir: str) -> VectorMap:
-    """The log's vector map in the city frame."""
+def read_map(log_dir: str) -> tuple[VectorMap, collections.Counter]:
+    """The log's vector map in the city frame, and counts of degenerate elements dropped."""
     paths = sorted(glob.glob(os.path.join(log_dir, "map", "log_map_archive_*.json")))
     if not paths:
         raise FileNotFoundError(
@@ -158,42 +164,86 @@ def read_map(log_dir: str) -> VectorMap:
     try:
         with open(path) as f:
             data = json.load(f)
-    except (OSError, json.JSONDecodeError) as e:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
         raise ValueError(f"{path}: unreadable map JSON ({e})") from e
     return vector_map_from_json(data, path)
 
 
-def _points(items, path: str, field: str) -> np.ndarray:
+def _points(obj: dict, key: str, path: str, where: str) -> np.ndarray:
+    """[P, 2] points (m) of the list `obj[key]`; missing, malformed or NaN/inf raise."""
+    field = f"{where}.{key}"
+    items = obj.get(key)
+    if items is None:
+        raise ValueError(f"{path}: field {field}: missing")
+    if not isinstance(items, list):
+        raise ValueError(f"{path}: field {field}: expected a list of points")
     try:
-        pts = np.array([[p["x"], p["y"]] for p in items], np.float64)
-    except (KeyError, TypeError) as e:
+        pts = np.array([[p["x"], p["y"]] for p in items], np.float64).reshape(-1, 2)
+    except (KeyError, TypeError, ValueError) as e:
         raise ValueError(f"{path}: field {field}: malformed point list ({e})") from e
-    if pts.ndim != 2 or len(pts) < 2 or not np.all(np.isfinite(pts)):
-        raise ValueError(f"{path}: field {field}: needs >= 2 finite points")
+    if not np.all(np.isfinite(pts)):
+        raise ValueError(f"{path}: field {field}: NaN or inf coordinate")
     return pts
 
 
-def vector_map_from_json(data: dict, path: str) -> VectorMap:
-    """Parses an Argoverse 2 `log_map_archive` dict."""
-    for key in ("lane_segments", "pedestrian_crossings", "drivable_areas"):
-        if key not in data:
-            raise ValueError(f"{path}: missing field {key}")
+def _entries(data: dict, key: str, path: str) -> list[tuple[str, dict]]:
+    """(id, element) pairs of a top-level map field; raises naming the field if malformed."""
+    if key not in data:
+        raise ValueError(f"{path}: missing field {key}")
+    if not isinstance(data[key], dict):
+        raise ValueError(f"{path}: field {key}: expected an object of elements by id")
+    for eid, element in data[key].items():
+        if not isinstance(element, dict):
+            raise ValueError(f"{path}: field {key}[{eid}]: expected an object")
+    return list(data[key].items())
+
+
+def polygon_area(points: np.ndarray) -> float:
+    """Unsigned (shoelace) area of a closed polygon [P, 2] in m, m^2; 0 below 3 points."""
+    if len(points) < 3:
+        return 0.0
+    x, y = (points - points[0]).T  # about a vertex: city coordinates are ~1e4 m
+    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+
+
+def _lane_ok(left: np.ndarray, right: np.ndarray) -> bool:
+    """Whether both boundaries have a length and the lane outline has an area."""
+
+    def has_length(points: np.ndarray) -> bool:
+        return len(points) >= 2 and bool(np.any(np.diff(points, axis=0) != 0))
+
+    outline = np.concatenate([left, right[::-1]], axis=0)
+    return has_length(left) and has_length(right) and polygon_area(outline) > MIN_POLYGON_AREA_M2
+
+
+def vector_map_from_json(data: dict, path: str) -> tuple[VectorMap, collections.Counter]:
+    """Parses an Argoverse 2 `log_map_archive` dict.
+
+    Degenerate elements are dropped and counted ("map:degenerate_lane": a boundary without
+    length or an outline without area; "map:degenerate_crosswalk" and
+    "map:degenerate_drivable_area": a polygon without area, e.g. fewer than 3 points).
+    Missing fields, malformed points and NaN/inf raise ValueError naming the file and field.
+    """
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a JSON object")
+    dropped: collections.Counter = collections.Counter()
     lanes = []
-    for lid, seg in data["lane_segments"].items():
+    for lid, seg in _entries(data, "lane_segments", path):
         where = f"lane_segments[{lid}]"
         lane_type = str(seg.get("lane_type", "VEHICLE"))
         if lane_type not in LANE_TYPES:
             raise ValueError(f"{path}: field {where}.lane_type: unknown {lane_type!r}")
+        left = _points(seg, "left_lane_boundary", path, where)
+        right = _points(seg, "right_lane_boundary", path, where)
+        if not _lane_ok(left, right):
+            dropped["map:degenerate_lane"] += 1
+            continue
         lanes.append(
             Lane(
                 id=int(seg.get("id", lid)),
                 lane_type=lane_type,
-                left=_points(
-                    seg.get("left_lane_boundary", []), path, f"{where}.left_lane_boundary"
-                ),
-                right=_points(
-                    seg.get("right_lane_boundary", []), path, f"{where}.right_lane_boundary"
-                ),
+                left=left,
+                right=right,
                 left_mark=str(seg.get("left_lane_mark_type", "NONE")),
                 right_mark=str(seg.get("right_lane_mark_type", "NONE")),
                 is_intersection=bool(seg.get("is_intersection", False)),
@@ -202,80 +252,129 @@ def vector_map_from_json(data: dict, path: str) -> VectorMap:
             )
         )
     crosswalks = []
-    for cid, cw in data["pedestrian_crossings"].items():
-        e1 = _points(cw.get("edge1", []), path, f"pedestrian_crossings[{cid}].edge1")
-        e2 = _points(cw.get("edge2", []), path, f"pedestrian_crossings[{cid}].edge2")
-        crosswalks.append(np.concatenate([e1, e2[::-1]], axis=0))
-    areas = [
-        _points(da.get("area_boundary", []), path, f"drivable_areas[{did}].area_boundary")
-        for did, da in data["drivable_areas"].items()
-    ]
-    return VectorMap(lanes=tuple(lanes), crosswalks=tuple(crosswalks), drivable_areas=tuple(areas))
+    for cid, cw in _entries(data, "pedestrian_crossings", path):
+        where = f"pedestrian_crossings[{cid}]"
+        e1, e2 = (_points(cw, k, path, where) for k in ("edge1", "edge2"))
+        polygon = np.concatenate([e1, e2[::-1]], axis=0)
+        if polygon_area(polygon) > MIN_POLYGON_AREA_M2:
+            crosswalks.append(polygon)
+        else:
+            dropped["map:degenerate_crosswalk"] += 1
+    areas = []
+    for did, da in _entries(data, "drivable_areas", path):
+        polygon = _points(da, "area_boundary", path, f"drivable_areas[{did}]")
+        if polygon_area(polygon) > MIN_POLYGON_AREA_M2:
+            areas.append(polygon)
+        else:
+            dropped["map:degenerate_drivable_area"] += 1
+    for reason, n in sorted(dropped.items()):
+        log.warning("%s: %d map elements dropped (%s)", path, n, reason)
+    vmap = VectorMap(lanes=tuple(lanes), crosswalks=tuple(crosswalks), drivable_areas=tuple(areas))
+    return vmap, dropped
 
 
 class DropCounter(collections.Counter):
     """Counts dropped rows by reason ("category:BOLLARD", "invalid:size", ...)."""
 
 
+def _drop(
+    keep: np.ndarray, bad: np.ndarray, reason: str, drops: collections.Counter, path: str
+) -> np.ndarray:
+    """`keep` [R] without the kept rows in `bad` [R], which are counted and logged."""
+    bad = keep & bad
+    if bad.any():
+        drops[reason] += int(bad.sum())
+        log.warning("%s: %d rows dropped (%s)", path, bad.sum(), reason)
+    return keep & ~bad
+
+
+def _keep_rows(ann: dict[str, np.ndarray], drops: collections.Counter, path: str) -> np.ndarray:
+    """bool [R]: annotation rows to use; every other row is counted in `drops` by reason.
+
+    Reasons: "category:<NAME>" (unmodelled), "invalid:<field>" (NaN/inf, or a size <= 0),
+    "invalid:size" (length or width over MAX_SIZE_M), "invalid:quaternion" (norm not 1
+    within QUATERNION_NORM_TOL), "invalid:duplicate_row" (a track's second row at a
+    timestamp: the first kept row of each (track_uuid, timestamp_ns) is used).
+    """
+    categories = ann["category"].astype(str)
+    keep = np.isin(categories, list(CATEGORY_TO_CLASS))
+    for cat in np.unique(categories[~keep]):
+        n = int(np.sum(categories == cat))
+        drops[f"category:{cat}"] += n
+        if cat not in DROPPED_CATEGORIES:
+            log.warning("%s: unknown category %r in %d rows, dropped", path, cat, n)
+    numeric = ("length_m", "width_m", "qw", "qx", "qy", "qz", "tx_m", "ty_m", "tz_m")
+    values = {f: ann[f].astype(np.float64) for f in numeric}
+    for field in numeric:
+        keep = _drop(keep, ~np.isfinite(values[field]), f"invalid:{field}", drops, path)
+    for field in ("length_m", "width_m"):
+        keep = _drop(keep, values[field] <= 0, f"invalid:{field}", drops, path)
+    too_big = (values["length_m"] > MAX_SIZE_M) | (values["width_m"] > MAX_SIZE_M)
+    keep = _drop(keep, too_big, "invalid:size", drops, path)
+    norm = np.sqrt(sum(values[k] ** 2 for k in ("qw", "qx", "qy", "qz")))
+    not_unit = ~(np.abs(norm - 1.0) <= QUATERNION_NORM_TOL)
+    keep = _drop(keep, not_unit, "invalid:quaternion", drops, path)
+    kept = np.flatnonzero(keep)
+    pairs = np.rec.fromarrays([ann["track_uuid"].astype(str)[kept], ann["timestamp_ns"][kept]])
+    first = np.zeros(len(keep), bool)
+    first[kept[np.unique(pairs, return_index=True)[1]]] = True  # stable: first in file order
+    return _drop(keep, ~first, "invalid:duplicate_row", drops, path)
+
+
+def _read_poses(path: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Ego poses sorted by time: timestamps [P] ns, rotations [P, 3, 3], translations [P, 3] m.
+
+    An empty table, NaN/inf or a quaternion that is not a rotation raise ValueError naming
+    the file and the field (the ego pose of every sweep matters, so a bad one is not dropped).
+    """
+    poses = read_table(path, POSE_COLUMNS)
+    pose_t = poses["timestamp_ns"].astype(np.int64)
+    if len(pose_t) == 0:
+        raise ValueError(f"{path}: field timestamp_ns: no ego poses")
+    order = np.argsort(pose_t)
+    quat = np.stack([poses[k][order] for k in ("qw", "qx", "qy", "qz")], -1).astype(np.float64)
+    trans = np.stack([poses[k][order] for k in ("tx_m", "ty_m", "tz_m")], -1).astype(np.float64)
+    if not np.all(np.isfinite(trans)) or not np.all(np.isfinite(quat)):
+        raise ValueError(f"{path}: NaN or inf in field tx_m/ty_m/tz_m or qw/qx/qy/qz")
+    bad = np.abs(np.linalg.norm(quat, axis=-1) - 1.0) > QUATERNION_NORM_TOL
+    if bad.any():
+        raise ValueError(
+            f"{path}: field qw/qx/qy/qz: {int(bad.sum())} poses are not unit quaternions"
+        )
+    return pose_t[order], quat_to_matrix(*quat.T), trans
+
+
 def read_log(log_dir: str, drops: DropCounter, crop_radius_m: float = 80.0) -> Iterator[Frame]:
     """Yields one Frame per annotated timestamp of a log, in time order.
 
-    Rows of unmodelled categories and rows with NaN/inf or non-positive sizes are dropped and
-    counted in `drops` (and logged); nothing is dropped silently.
+    Rows that cannot be used (see `_keep_rows`; also rows without an ego pose at their
+    timestamp, "invalid:no_ego_pose") and degenerate map elements (`vector_map_from_json`)
+    are dropped, counted in `drops` and logged; nothing is dropped silently. A sweep whose
+    rows are all dropped is a frame without actors. A log without any usable sweep (no
+    annotation rows, no ego poses, or no annotated timestamp with an ego pose) raises
+    ValueError naming the file and the field; so do unreadable files and missing fields.
     """
     ann_path = os.path.join(log_dir, "annotations.feather")
     pose_path = os.path.join(log_dir, "city_SE3_egovehicle.feather")
     ann = read_table(ann_path, ANNOTATION_COLUMNS)
-    poses = read_table(pose_path, POSE_COLUMNS)
-    city_map = read_map(log_dir)
+    if len(ann["timestamp_ns"]) == 0:
+        raise ValueError(f"{ann_path}: field timestamp_ns: no annotation rows")
+    pose_t, pose_rot, pose_trans = _read_poses(pose_path)
+    city_map, map_drops = read_map(log_dir)
     log_id = os.path.basename(os.path.normpath(log_dir))
 
-    # Ego poses, indexed by timestamp.
-    pose_t = poses["timestamp_ns"].astype(np.int64)
-    order = np.argsort(pose_t)
-    pose_t = pose_t[order]
-    pose_rot = quat_to_matrix(*(poses[k][order] for k in ("qw", "qx", "qy", "qz")))
-    pose_trans = np.stack([poses[k][order] for k in ("tx_m", "ty_m", "tz_m")], -1)
-    if not np.all(np.isfinite(pose_trans)) or not np.all(np.isfinite(pose_rot)):
-        raise ValueError(f"{pose_path}: NaN or inf in field tx_m/ty_m/tz_m or quaternion")
+    keep = _keep_rows(ann, drops, ann_path)
+    t_ns = ann["timestamp_ns"].astype(np.int64)
+    pose_idx = np.clip(np.searchsorted(pose_t, t_ns), 0, len(pose_t) - 1)
+    has_pose = pose_t[pose_idx] == t_ns
+    if not has_pose.any():
+        raise ValueError(
+            f"{ann_path}: field timestamp_ns: no annotated timestamp has an ego pose in {pose_path}"
+        )
+    keep = _drop(keep, ~has_pose, "invalid:no_ego_pose", drops, ann_path)
+    drops.update(map_drops)
 
     categories = ann["category"].astype(str)
-    keep = np.zeros(len(categories), bool)
-    for cat in np.unique(categories):
-        rows = categories == cat
-        if cat in CATEGORY_TO_CLASS:
-            keep |= rows
-        else:
-            drops[f"category:{cat}"] += int(rows.sum())
-            if cat not in DROPPED_CATEGORIES:
-                log.warning(
-                    "%s: unknown category %r in %d rows, dropped", ann_path, cat, rows.sum()
-                )
-    numeric = ("length_m", "width_m", "qw", "qx", "qy", "qz", "tx_m", "ty_m", "tz_m")
-    for field in numeric:
-        bad = keep & ~np.isfinite(ann[field].astype(np.float64))
-        if bad.any():
-            drops[f"invalid:{field}"] += int(bad.sum())
-            log.warning("%s: field %s: %d rows with NaN/inf dropped", ann_path, field, bad.sum())
-            keep &= ~bad
-    for field in ("length_m", "width_m"):
-        bad = keep & (ann[field] <= 0)
-        if bad.any():
-            drops[f"invalid:{field}"] += int(bad.sum())
-            log.warning("%s: field %s: %d rows with size <= 0 dropped", ann_path, field, bad.sum())
-            keep &= ~bad
-
-    t_ns = ann["timestamp_ns"].astype(np.int64)
-    pose_idx = np.searchsorted(pose_t, t_ns)
-    pose_idx = np.clip(pose_idx, 0, len(pose_t) - 1)
-    no_pose = keep & (pose_t[pose_idx] != t_ns)
-    if no_pose.any():
-        drops["invalid:no_ego_pose"] += int(no_pose.sum())
-        log.warning(
-            "%s: %d rows without an ego pose at their timestamp dropped", ann_path, no_pose.sum()
-        )
-        keep &= ~no_pose
-
     cls = np.array([CATEGORY_TO_CLASS.get(c, -1) for c in categories], np.int32)
     pos_ego = np.stack([ann["tx_m"], ann["ty_m"], ann["tz_m"]], -1).astype(np.float64)
     yaw = quat_to_yaw(*(ann[k].astype(np.float64) for k in ("qw", "qx", "qy", "qz")))
@@ -337,7 +436,9 @@ def _map_to_ego(city_map: VectorMap, rot: np.ndarray, trans: np.ndarray) -> Vect
 
 
 def _group(keys: np.ndarray):
-    """(key, row indices) for each distinct key."""
+    """(key, row indices) for each distinct key; nothing for no keys."""
+    if len(keys) == 0:
+        return
     order = np.argsort(keys, kind="stable")
     sorted_keys = keys[order]
     bounds = np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1], True])

@@ -11,6 +11,7 @@ direction as heading; on input their width, length and heading may be omitted.
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -19,6 +20,7 @@ import numpy as np
 from scenegen_jax.config import Config
 from scenegen_jax.data.frame import Frame
 from scenegen_jax.data.vector_map import VectorMap
+from scenegen_jax.geometry import boxes_overlap
 from scenegen_jax.scene import CLASS_NAMES, PEDESTRIAN, Actors, Scene, canonical_order, make_ego
 
 RECORD_FIELDS = ("x", "y", "width", "length", "heading", "vx", "vy")
@@ -42,11 +44,27 @@ def actor_records(actors: Actors) -> list[dict]:
     return out
 
 
-def actors_from_records(records: Sequence[Mapping[str, Any]], cfg: Config, where: str) -> Actors:
+def actors_from_records(
+    records: Sequence[Mapping[str, Any]],
+    cfg: Config,
+    where: str,
+    ego_sizes: np.ndarray | None = None,
+    allow_overlap: bool = False,
+) -> Actors:
     """Actors [N = cfg.max_actors] (numpy, canonical order) from JSON records.
 
-    Raises ValueError naming `where` and the field for unknown classes, missing or non-finite
-    values, non-positive box sizes, actors outside the region, or more than N actors.
+    Args:
+      records: actor records (module docstring); `actors[i]` in errors is records[i].
+      cfg: the model's config.
+      where: what errors name first, e.g. "given.jsonl:3" (file and line).
+      ego_sizes: [E, 2] (width, length) m of the egos the actors will meet, each at the
+        origin with heading 0 (default: cfg.ego_size_m).
+      allow_overlap: keep boxes that overlap each other or an ego (`check_overlaps`).
+
+    Raises ValueError naming `where` and the field for unknown classes, missing values or
+    values that are not finite numbers (true/false and strings are not numbers),
+    non-positive box sizes, actors outside the region, more than N actors, and (unless
+    `allow_overlap`) overlapping boxes.
     """
     n = cfg.max_actors
     if not isinstance(records, Sequence) or isinstance(records, (str, bytes)):
@@ -64,7 +82,7 @@ def actors_from_records(records: Sequence[Mapping[str, Any]], cfg: Config, where
         if not isinstance(rec, Mapping):
             raise ValueError(f"{field}: expected an object")
         name = rec.get("class")
-        if name not in CLASS_NAMES:
+        if not isinstance(name, str) or name not in CLASS_NAMES:
             raise ValueError(f"{field}.class: {name!r} is not one of {CLASS_NAMES}")
         c = CLASS_NAMES.index(name)
         ped = c == PEDESTRIAN
@@ -75,13 +93,7 @@ def actors_from_records(records: Sequence[Mapping[str, Any]], cfg: Config, where
             value = rec.get(key, default)
             if value is None:
                 raise ValueError(f"{field}.{key}: missing")
-            try:
-                value = float(value)
-            except (TypeError, ValueError) as e:
-                raise ValueError(f"{field}.{key}: not a number ({value!r})") from e
-            if not math.isfinite(value):
-                raise ValueError(f"{field}.{key}: NaN or inf")
-            values[key] = value
+            values[key] = _number(value, f"{field}.{key}")
         if not ped and (values["width"] <= 0 or values["length"] <= 0):
             raise ValueError(f"{field}.width/length: box sizes must be positive")
         cls[i] = c
@@ -92,9 +104,62 @@ def actors_from_records(records: Sequence[Mapping[str, Any]], cfg: Config, where
         valid[i] = True
     actors = Actors(cls=cls, position=position, size=size, heading=heading, velocity=velocity,
                     valid=valid)
+    if not allow_overlap:
+        sizes = np.asarray(cfg.ego_size_m if ego_sizes is None else ego_sizes, np.float64)
+        check_overlaps(actors, sizes.reshape(-1, 2), where)
     actors = _numpy(canonical_order(actors, cfg))
     Scene(actors=actors, ego=make_ego(cfg)).validate(cfg, where)
     return actors
+
+
+def _number(value: Any, field: str) -> float:
+    """A finite JSON number as a float; ValueError naming `field` for anything else."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise ValueError(f"{field}: not a number ({value!r})")
+    try:
+        value = float(value)
+    except OverflowError as e:  # a JSON integer beyond float range
+        raise ValueError(f"{field}: out of range") from e
+    if not math.isfinite(value):
+        raise ValueError(f"{field}: NaN or inf")
+    return value
+
+
+def check_overlaps(actors: Actors, ego_sizes: np.ndarray, where: str) -> None:
+    """Raises ValueError naming `where` and the actors if boxes overlap.
+
+    Tests the valid vehicle and bicyclist boxes of `actors` [N] against each other and
+    against egos at the origin with heading 0, one per row of `ego_sizes` [E, 2] (width,
+    length) m. Pedestrians are points here, as in the sampler's collision rejection; boxes
+    that only touch do not overlap. `actors[i]` in errors is slot i.
+    """
+    a = _numpy(actors)
+    boxed = np.flatnonzero(a.valid & (a.cls != PEDESTRIAN))
+    pos, size = a.position.astype(np.float64), a.size.astype(np.float64)
+    head = a.heading.astype(np.float64)
+    hint = "; pass --allow-overlap to keep overlapping given actors"
+    for ego_size in ego_sizes:
+        hit = boxes_overlap(np.zeros(2), ego_size, 0.0, pos[boxed], size[boxed], head[boxed])
+        if hit.any():
+            i = boxed[np.argmax(hit)]
+            raise ValueError(
+                f"{where}: actors[{i}] ({_describe(a, i)}) overlaps the ego (width "
+                f"{ego_size[0]:g} m, length {ego_size[1]:g} m at the origin){hint}"
+            )
+    for k, i in enumerate(boxed[:-1]):
+        rest = boxed[k + 1:]
+        hit = boxes_overlap(pos[i], size[i], head[i], pos[rest], size[rest], head[rest])
+        if hit.any():
+            j = rest[np.argmax(hit)]
+            raise ValueError(
+                f"{where}: actors[{i}] ({_describe(a, i)}) and actors[{j}] "
+                f"({_describe(a, j)}) overlap{hint}"
+            )
+
+
+def _describe(a: Actors, i: int) -> str:
+    x, y = a.position[i]
+    return f"{CLASS_NAMES[int(a.cls[i])]} at x={x:g} m, y={y:g} m"
 
 
 def frame_from_sample(
