@@ -15,6 +15,7 @@ CFG = get_config("tiny").replace(
     gn_groups=2,
     rotate_augment=False,
     learning_rate=3e-3,
+    hard_negatives=512,  # half the grid: the tests cover hard negative mining
 )
 
 
