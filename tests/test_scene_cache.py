@@ -113,6 +113,21 @@ def test_cache_summary_and_bad_cache(tiny_train_cache, tmp_path):
     assert json.loads(json.dumps(meta["summary"]))["actors"]["vehicle"] > 0
 
 
+@pytest.mark.parametrize("name, keep", [("actors.npz", 0.5), ("maps.npy", 0.5),
+                                         ("maps.npy", 0.0), ("meta.json", 0.5)])
+def test_truncated_cache_files_are_named(tiny_train_cache, tmp_path, name, keep):
+    """A cache file cut short (a full disk, a killed copy) gives one error naming it."""
+    src, dst = tiny_train_cache.path, tmp_path / "cut"
+    dst.mkdir()
+    for n in ("maps.npy", "meta.json", "actors.npz"):
+        if n != name:
+            os.symlink(os.path.join(src, n), dst / n)
+    data = open(os.path.join(src, name), "rb").read()
+    (dst / name).write_bytes(data[: int(len(data) * keep)])
+    with pytest.raises(ValueError, match=f"{dst / name}: "):
+        load_cache(str(dst))
+
+
 def test_overflow_is_counted():
     cfg = CFG.replace(max_actors=3)
     a = _actors([[x, 0.0] for x in (-30.0, -10.0, 5.0, 20.0, 30.0)])

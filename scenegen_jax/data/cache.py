@@ -18,6 +18,7 @@ import json
 import logging
 import math
 import os
+import zipfile
 from collections.abc import Iterable
 
 import numpy as np
@@ -279,16 +280,28 @@ def load_cache(path: str) -> Cache:
     meta_path = os.path.join(path, "meta.json")
     if not os.path.isfile(meta_path):
         raise FileNotFoundError(f"{meta_path}: not a scenegen cache (run `scenegen prepare`)")
-    with open(meta_path) as f:
-        meta = json.load(f)
+    try:
+        with open(meta_path) as f:
+            meta = json.load(f)
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{meta_path}: not valid JSON ({e})") from e
+    if not isinstance(meta, dict) or not isinstance(meta.get("scene_ids"), list):
+        raise ValueError(f"{meta_path}: field scene_ids: missing or not a list")
     if meta.get("version") != CACHE_VERSION:
         raise ValueError(f"{meta_path}: field version: {meta.get('version')} != {CACHE_VERSION}")
     if meta.get("channels") != list(ALL_MAP_CHANNELS):
         raise ValueError(f"{meta_path}: field channels: cache channels differ from this version")
-    maps = np.load(os.path.join(path, "maps.npy"), mmap_mode="r", allow_pickle=False)
+    maps_path = os.path.join(path, "maps.npy")
+    try:
+        maps = np.load(maps_path, mmap_mode="r", allow_pickle=False)
+    except (ValueError, OSError, EOFError) as e:  # truncated or not an .npy file
+        raise ValueError(f"{maps_path}: unreadable map canvases ({e}); re-run prepare") from e
     npz_path = os.path.join(path, "actors.npz")
-    with np.load(npz_path, allow_pickle=False) as z:
-        data = {k: z[k] for k in z.files}
+    try:
+        with np.load(npz_path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as e:
+        raise ValueError(f"{npz_path}: unreadable actor arrays ({e}); re-run prepare") from e
     missing = [k for k in (*ACTOR_FIELDS, "ego_velocity", "ego_size") if k not in data]
     if missing:
         raise ValueError(f"{npz_path}: missing field(s) {missing}")
