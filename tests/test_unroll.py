@@ -1,0 +1,151 @@
+"""The teacher-forced unroll computed the fast way equals the plain reference: values,
+gradients, remat, window-by-window gradients, truncation (real scenes, small tiny config)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from small import CFG, random_params, two_small_scenes
+
+from scenegen_jax.train.data import gather_batch
+from scenegen_jax.train.step import (
+    crop_batch,
+    loss_fn,
+    nll_metrics,
+)
+from scenegen_jax.train.unroll import (
+    num_windows,
+    reference_step_terms,
+    unroll_terms,
+    unroll_terms_and_grads,
+)
+
+
+@pytest.fixture(scope="module")
+def small_scenes(tiny_train_cache):
+    return two_small_scenes(tiny_train_cache)
+
+
+def _batch(cache, idx):
+    return gather_batch(cache, np.asarray(idx), CFG)
+
+
+@pytest.mark.parametrize(
+    "chunk_bytes,step_loop",
+    [(None, False), (1, False), (3 * 2 * 32 * 32 * 8 * 4, False), (None, True)],
+)
+def test_fast_unroll_equals_plain_reference(tiny_train_cache, small_scenes, chunk_bytes,
+                                            step_loop, monkeypatch):
+    """Backbone chunks of the whole window (default here), 1 step, and 3 steps (uneven), all
+    unrolled as on CPU; and the steps as the compiled loop of accelerators."""
+    import scenegen_jax.train.unroll as unroll
+
+    if chunk_bytes is not None:
+        monkeypatch.setattr(unroll, "HEAD_CHUNK_BYTES", chunk_bytes)
+    monkeypatch.setattr(unroll, "compiled_step_loop", lambda: step_loop)
+    cfg = CFG.replace(bptt_window=16)  # one window: the reference has no truncation either
+    params = random_params(cfg, jax.random.key(1))
+    maps, scene = crop_batch(_batch(tiny_train_cache, small_scenes), jnp.array([0.0, 1.0]), cfg)
+    fast, valid, _ = jax.jit(lambda p: unroll_terms(p, cfg, maps, scene, None))(params)
+    ref = reference_step_terms(params, cfg, maps, scene, None)
+    steps = ref["class"].shape[1]
+    for k, v in ref.items():
+        np.testing.assert_allclose(np.asarray(fast[k])[:, :steps], v, rtol=2e-4, atol=2e-3)
+        assert np.all(np.asarray(fast[k])[:, steps:] == 0)
+
+    def fast_loss(p):
+        t, _, _ = unroll_terms(p, cfg, maps, scene, 64)
+        return -sum(jnp.sum(v) for v in t.values())
+
+    def ref_loss(p):
+        return -sum(jnp.sum(v) for v in reference_step_terms(p, cfg, maps, scene, 64).values())
+
+    g_fast = jax.grad(fast_loss)(params)
+    g_ref = jax.grad(ref_loss)(params)
+    # float32 sums over hundreds of terms in another order: tolerances relative to the scale
+    # of the gradient (the location bias is softmax-invariant: its exact gradient is 0).
+    scale = max(float(np.abs(b).max()) for b in jax.tree.leaves(g_ref))
+    for a, b in zip(jax.tree.leaves(g_fast), jax.tree.leaves(g_ref), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-2, atol=1e-4 * scale)
+
+
+@pytest.mark.parametrize("step_loop", [False, True])
+def test_remat_gives_the_same_loss_and_gradients(tiny_train_cache, small_scenes, step_loop,
+                                                 monkeypatch):
+    """Recomputing the backbone and heads in the backward pass (chunks of 3 steps unrolled,
+    or one step per iteration of the compiled loop; windows of 8 with the state carried
+    between them) changes neither the loss nor its gradients."""
+    import scenegen_jax.train.unroll as unroll
+
+    monkeypatch.setattr(unroll, "HEAD_CHUNK_BYTES", 3 * 2 * 32 * 32 * 8 * 4)
+    monkeypatch.setattr(unroll, "compiled_step_loop", lambda: step_loop)
+    maps, scene = crop_batch(_batch(tiny_train_cache, small_scenes), jnp.array([0.0, 1.0]), CFG)
+    params = random_params(CFG, jax.random.key(2))
+
+    def loss(p, remat):
+        cfg = CFG.replace(bptt_window=8, remat=remat)
+        t, _, _ = unroll_terms(p, cfg, maps, scene, 64)
+        return -sum(jnp.sum(v) for v in t.values())
+
+    plain = jax.jit(jax.value_and_grad(lambda p: loss(p, False)))(params)
+    remat = jax.jit(jax.value_and_grad(lambda p: loss(p, True)))(params)
+    np.testing.assert_allclose(remat[0], plain[0], rtol=1e-6)
+    assert float(jnp.abs(plain[1]["backbone0_w"]).max()) > 0  # the recomputed part has gradient
+    for a, b in zip(jax.tree.leaves(remat[1]), jax.tree.leaves(plain[1]), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6 * float(np.abs(b).max()))
+
+
+@pytest.mark.parametrize("remat,compiled_loop", [(False, False), (True, True)])
+def test_window_by_window_gradient_equals_autodiff(tiny_train_cache, small_scenes, remat,
+                                                   compiled_loop, monkeypatch):
+    """The train step's gradient, taken one window at a time (windows of 5, four per scene;
+    windows and steps in Python loops as on CPU, or in the `lax.scan`s of accelerators),
+    equals jax.grad of the mean scene NLL through the whole unroll (Python loops)."""
+    import scenegen_jax.train.unroll as unroll
+
+    cfg = CFG.replace(bptt_window=5, remat=remat)
+    assert num_windows(cfg) == 4
+    maps, scene = crop_batch(_batch(tiny_train_cache, small_scenes), jnp.array([0.5, 2.0]), cfg)
+    params = random_params(cfg, jax.random.key(4))
+    (loss, stats), grads = jax.jit(jax.value_and_grad(loss_fn, has_aux=True), static_argnums=1)(
+        params, cfg, maps, scene)
+    monkeypatch.setattr(unroll, "compiled_window_loop", lambda: compiled_loop)
+    monkeypatch.setattr(unroll, "compiled_step_loop", lambda: compiled_loop)
+    unrolled, windowed = jax.jit(
+        lambda p: unroll_terms_and_grads(p, cfg, maps, scene, 1.0 / 2))(params)
+    scene_nll, stats_w = nll_metrics(*unrolled)
+    _, stats_fwd = nll_metrics(*jax.jit(
+        lambda p: unroll_terms(p, cfg, maps, scene, cfg.hard_negatives))(params))
+    np.testing.assert_allclose(jnp.mean(scene_nll), loss, rtol=1e-6)
+    for k, v in stats.items():
+        np.testing.assert_allclose(stats_w[k], v, rtol=1e-6)
+        np.testing.assert_allclose(stats_fwd[k], v, rtol=1e-6)
+    assert float(jnp.abs(grads["lstm1_map"]).max()) > 0  # the map share's gradient is there
+    # The location head's last bias is softmax-invariant: its exact gradient is 0 and what
+    # is left is float32 noise, so its tolerance comes from the gradient's overall scale.
+    scale = max(float(np.abs(b).max()) for b in jax.tree.leaves(grads))
+    for a, b in zip(jax.tree.leaves(windowed), jax.tree.leaves(grads), strict=True):
+        atol = max(1e-5 * float(np.abs(b).max()), 1e-6 * scale)
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=atol)
+
+
+def test_truncation_cuts_gradients_between_windows(tiny_train_cache, small_scenes):
+    params = random_params(CFG, jax.random.key(2))
+    maps, scene = crop_batch(_batch(tiny_train_cache, small_scenes), jnp.zeros(2), CFG)
+
+    def window_loss(p, lo, hi):
+        t, _, _ = unroll_terms(p, CFG, maps, scene, None)
+        return -jnp.sum(t["class"][:, lo:hi])
+
+    w = CFG.bptt_window
+    # The second window's loss depends on the first window's inputs only through the state,
+    # whose gradient is cut: its gradient w.r.t. the recurrent weights comes from window 2 only.
+    g2 = jax.grad(window_loss)(params, w, 2 * w)
+    g1 = jax.grad(window_loss)(params, 0, w)
+    assert np.all(np.isfinite(np.asarray(g2["lstm1_rec"])))
+    assert not np.allclose(g1["lstm1_rec"], g2["lstm1_rec"])
+    # Every step of both windows contributes: the second window's terms are non-zero.
+    t, valid, _ = unroll_terms(params, CFG, maps, scene, None)
+    assert np.all(np.asarray(t["class"])[np.asarray(valid)] != 0)
