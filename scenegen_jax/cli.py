@@ -434,6 +434,8 @@ def load_model(args):
     import jax
 
     if args.pretrained:
+        if args.step is not None:
+            raise SystemExit("--step selects a checkpoint of --workdir; a pretrained model has one")
         from scenegen_jax.pretrained import load_pretrained
 
         cfg, params, manifest = load_pretrained(args.pretrained)

@@ -337,10 +337,9 @@ class SceneGenNet(nn.Module):
         `conv_per_example`. All give the same values.
 
         The last layer's weights start at zero, so an untrained model's location distribution
-        is uniform. With random logits instead, the quickest early gain is to shrink their
-        spread, which training did by silencing the backbone (its ReLU channels went dead,
-        `experiments/probe_features.py`), leaving every later term without features; from
-        flat logits every gradient step adds structure that the data supports.
+        is uniform and training has no spread of random logits to remove first (with random
+        weights it removed it partly by silencing backbone channels;
+        experiments/results/README.md, session 13).
         """
         cls = jnp.clip(cls, 0, NUM_CLASSES - 1)
 
