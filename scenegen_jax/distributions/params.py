@@ -84,11 +84,10 @@ def initial_heading_bias(k: int) -> np.ndarray:
     the circle, each as wide as the spacing.
 
     The mixture then starts close to uniform (equal-weight, evenly spread components cancel
-    every harmonic below the K-th), so the loss does not push the concentrations to the
+    every harmonic below the K-th), so the loss does not push the concentrations towards the
     floor of `LOG_KAPPA_RANGE`, where the clamp's gradient is zero and the direction's is
-    proportional to kappa (a dead head: headings would stay uniform for the whole run). From
-    the first step the mixture weights act as a K-way classifier over directions, whose
-    gradient does not vanish.
+    proportional to kappa. From the first step the mixture weights act as a K-way classifier
+    over directions, whose gradient does not vanish.
     """
     return np.concatenate(
         [np.zeros(k), _spread_directions(k).reshape(-1), np.full(k, _spread_log_kappa(k))]
