@@ -6,7 +6,7 @@ DATA ?= ../shared/data/av2_sensor_mini
 OUT ?= out/demo
 DEMO_CONFIG ?= tiny
 
-.PHONY: install test demo bench lint clean
+.PHONY: install test fuzz demo bench lint clean
 
 install: $(VENV)/.installed
 
@@ -25,6 +25,11 @@ test: install
 	@start=$$(date +%s); \
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadscope --durations=15; rc=$$?; \
 	echo "make test: $$(( $$(date +%s) - start )) s wall"; exit $$rc
+
+# The fuzzed input surface with many more damaged inputs per reader than `make test` runs
+# (tests/test_fuzz.py; each run draws new ones, and a failure prints how to reproduce it).
+fuzz: install
+	HYPOTHESIS_PROFILE=fuzz $(BIN)/python -m pytest -q tests/test_fuzz.py
 
 lint: install
 	$(BIN)/ruff check scenegen_jax tests experiments

@@ -122,7 +122,7 @@ class Config:
         """The config of `to_json` text; errors name `source` (a file) and the field."""
         try:
             d = json.loads(text)
-        except json.JSONDecodeError as e:
+        except ValueError as e:  # JSONDecodeError, or an integer beyond Python's digit limit
             raise ValueError(f"{source}: not valid JSON ({e})") from e
         if not isinstance(d, dict):
             raise ValueError(f"{source}: expected a JSON object of config fields")
@@ -138,7 +138,10 @@ class Config:
                     raise ValueError(f"{source}: field {key}: expected a list, got {value!r}")
                 d[key] = tuple(value)
             elif want is float and isinstance(value, int) and not isinstance(value, bool):
-                d[key] = float(value)
+                try:
+                    d[key] = float(value)
+                except OverflowError as e:
+                    raise ValueError(f"{source}: field {key}: integer out of float range") from e
             elif type(value) is not want:
                 raise ValueError(
                     f"{source}: field {key}: expected {want.__name__}, got {value!r}"
@@ -160,7 +163,10 @@ class Config:
 def config_problems(cfg: Config) -> list[str]:
     """Every field value of `cfg` that cannot work, with the reason (empty if none)."""
     out = []
-    unknown = sorted(set(cfg.map_layers) - set(LAYER_GROUPS))
+    named = [g for g in cfg.map_layers if isinstance(g, str)]
+    if len(named) != len(cfg.map_layers):
+        out.append(f"map_layers: must be group names (strings), got {cfg.map_layers!r}")
+    unknown = sorted(set(named) - set(LAYER_GROUPS))
     if unknown:
         out.append(f"map_layers: unknown groups {unknown}; known: {list(ALL_LAYER_GROUPS)}")
     positive_ints = ("grid_size", "max_actors", "hidden", "backbone_layers", "gn_groups",

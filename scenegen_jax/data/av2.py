@@ -164,7 +164,7 @@ def read_map(log_dir: str) -> tuple[VectorMap, collections.Counter]:
     try:
         with open(path) as f:
             data = json.load(f)
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+    except (OSError, ValueError) as e:  # ValueError: bad JSON or UTF-8, an over-long integer
         raise ValueError(f"{path}: unreadable map JSON ({e})") from e
     return vector_map_from_json(data, path)
 
@@ -179,11 +179,32 @@ def _points(obj: dict, key: str, path: str, where: str) -> np.ndarray:
         raise ValueError(f"{path}: field {field}: expected a list of points")
     try:
         pts = np.array([[p["x"], p["y"]] for p in items], np.float64).reshape(-1, 2)
-    except (KeyError, TypeError, ValueError) as e:
+    except (KeyError, TypeError, ValueError, OverflowError) as e:
         raise ValueError(f"{path}: field {field}: malformed point list ({e})") from e
     if not np.all(np.isfinite(pts)):
         raise ValueError(f"{path}: field {field}: NaN or inf coordinate")
     return pts
+
+
+def _integer(value: object, path: str, field: str) -> int:
+    """An integer id (an int, an integral float or a decimal string); ValueError naming the
+    file and field for anything else (None, lists, booleans, NaN, inf, "abc")."""
+    if isinstance(value, bool):
+        raise ValueError(f"{path}: field {field}: expected an integer id, got {value!r}")
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    if isinstance(value, int) or (isinstance(value, str) and value.strip().lstrip("-").isdigit()):
+        return int(value)
+    raise ValueError(f"{path}: field {field}: expected an integer id, got {value!r}")
+
+
+def _integers(value: object, path: str, field: str) -> tuple[int, ...]:
+    """A tuple of integer ids from a list (missing or null: none)."""
+    if value is None:
+        return ()
+    if not isinstance(value, list):
+        raise ValueError(f"{path}: field {field}: expected a list of ids, got {value!r}")
+    return tuple(_integer(v, path, f"{field}[{i}]") for i, v in enumerate(value))
 
 
 def _entries(data: dict, key: str, path: str) -> list[tuple[str, dict]]:
@@ -240,15 +261,15 @@ def vector_map_from_json(data: dict, path: str) -> tuple[VectorMap, collections.
             continue
         lanes.append(
             Lane(
-                id=int(seg.get("id", lid)),
+                id=_integer(seg.get("id", lid), path, f"{where}.id"),
                 lane_type=lane_type,
                 left=left,
                 right=right,
                 left_mark=str(seg.get("left_lane_mark_type", "NONE")),
                 right_mark=str(seg.get("right_lane_mark_type", "NONE")),
                 is_intersection=bool(seg.get("is_intersection", False)),
-                successors=tuple(int(s) for s in seg.get("successors", []) or []),
-                predecessors=tuple(int(s) for s in seg.get("predecessors", []) or []),
+                successors=_integers(seg.get("successors"), path, f"{where}.successors"),
+                predecessors=_integers(seg.get("predecessors"), path, f"{where}.predecessors"),
             )
         )
     crosswalks = []

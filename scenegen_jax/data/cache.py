@@ -18,6 +18,7 @@ import json
 import logging
 import math
 import os
+import tokenize
 import zipfile
 from collections.abc import Iterable
 
@@ -275,6 +276,14 @@ class Cache:
             )
 
 
+# What np.load raises on a truncated or damaged .npy / .npz: a header that is cut or no
+# Python literal fails in numpy's header parser with SyntaxError or tokenize.TokenError.
+_UNREADABLE_ARRAY = (
+    ValueError, OSError, EOFError, SyntaxError, TypeError, tokenize.TokenError,
+    zipfile.BadZipFile,
+)
+
+
 def load_cache(path: str) -> Cache:
     """Opens a cache directory written by `write_cache`; errors name the file and field."""
     meta_path = os.path.join(path, "meta.json")
@@ -283,7 +292,7 @@ def load_cache(path: str) -> Cache:
     try:
         with open(meta_path) as f:
             meta = json.load(f)
-    except json.JSONDecodeError as e:
+    except ValueError as e:  # JSONDecodeError, UnicodeDecodeError, an over-long integer
         raise ValueError(f"{meta_path}: not valid JSON ({e})") from e
     if not isinstance(meta, dict) or not isinstance(meta.get("scene_ids"), list):
         raise ValueError(f"{meta_path}: field scene_ids: missing or not a list")
@@ -294,13 +303,13 @@ def load_cache(path: str) -> Cache:
     maps_path = os.path.join(path, "maps.npy")
     try:
         maps = np.load(maps_path, mmap_mode="r", allow_pickle=False)
-    except (ValueError, OSError, EOFError) as e:  # truncated or not an .npy file
+    except _UNREADABLE_ARRAY as e:  # truncated or not an .npy file
         raise ValueError(f"{maps_path}: unreadable map canvases ({e}); re-run prepare") from e
     npz_path = os.path.join(path, "actors.npz")
     try:
         with np.load(npz_path, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
-    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as e:
+    except _UNREADABLE_ARRAY as e:
         raise ValueError(f"{npz_path}: unreadable actor arrays ({e}); re-run prepare") from e
     missing = [k for k in (*ACTOR_FIELDS, "ego_velocity", "ego_size") if k not in data]
     if missing:

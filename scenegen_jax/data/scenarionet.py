@@ -170,7 +170,7 @@ def _array(
     """A numeric array of `ndim` dims (at least `min_cols` columns); finiteness checked later."""
     try:
         arr = np.asarray(value, dtype=dtype)
-    except (TypeError, ValueError) as e:
+    except (TypeError, ValueError, OverflowError) as e:
         raise _err(source, field, f"not a numeric array ({e})") from e
     if arr.ndim != ndim or (ndim == 2 and arr.shape[1] < min_cols):
         want = f"[N, >={min_cols}]" if ndim == 2 else "[N]"
@@ -182,7 +182,7 @@ def _series(value: Any, source: str, field: str) -> np.ndarray:
     """[T] float64 of a per-step scalar stored as [T] or [T, 1]."""
     try:
         arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError) as e:
+    except (TypeError, ValueError, OverflowError) as e:
         raise _err(source, field, f"not a numeric array ({e})") from e
     if arr.ndim == 2 and arr.shape[1] == 1:
         arr = arr[:, 0]
@@ -577,7 +577,7 @@ def _finite_at(tr: _Track, t: int) -> str | None:
 def _int(value: Any, source: str, field: str) -> int:
     try:
         return int(value)
-    except (TypeError, ValueError) as e:
+    except (TypeError, ValueError, OverflowError) as e:  # OverflowError: int(inf)
         raise _err(source, field, f"expected an integer, got {value!r}") from e
 
 

@@ -86,7 +86,7 @@ def _xy(value: Any, n: int | None, source: str, field: str) -> np.ndarray:
             out = np.array([(p["x"], p["y"]) for p in value], float).reshape(len(value), 2)
         else:
             raise TypeError(f"expected a list or a dict, got {type(value).__name__}")
-    except (KeyError, TypeError, ValueError) as e:
+    except (KeyError, TypeError, ValueError, OverflowError) as e:
         raise _err(source, field, f"expected x/y points ({e})") from e
     if out.ndim != 2 or (n is not None and len(out) != n):
         raise _err(source, field, f"expected {n} points, got shape {out.shape}")
@@ -96,7 +96,7 @@ def _xy(value: Any, n: int | None, source: str, field: str) -> np.ndarray:
 def _vector(value: Any, n: int, source: str, field: str, dtype=float) -> np.ndarray:
     try:
         out = np.asarray(value, dtype)
-    except (TypeError, ValueError) as e:
+    except (TypeError, ValueError, OverflowError) as e:
         raise _err(source, field, f"not a numeric list ({e})") from e
     if out.shape != (n,):
         raise _err(source, field, f"expected {n} values, got shape {out.shape}")
@@ -107,7 +107,10 @@ def _scalar(obj: Mapping, key: str, source: str, field: str) -> float:
     value = obj.get(key)
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise _err(source, f"{field}.{key}", f"expected a number, got {value!r}")
-    return float(value)
+    try:
+        return float(value)
+    except OverflowError as e:  # a JSON integer beyond float range
+        raise _err(source, f"{field}.{key}", "integer out of float range") from e
 
 
 def heading_unit_is_degrees(heading: np.ndarray, velocity: np.ndarray, valid: np.ndarray) -> bool:
@@ -319,7 +322,8 @@ def frames_from_scenario(
     """Frames at steps 0, stride, 2 stride, ... where the ego is valid, and the drop counts.
 
     Rows valid at a frame's step are either actors of the frame or counted drops (unknown
-    types, NaN/inf, non-positive box sizes of vehicles and cyclists).
+    types, NaN/inf, non-positive box sizes of vehicles and cyclists). NaN/inf in the ego's
+    state at a frame's step, or an ego box size that is not positive, raise ValueError.
     """
     if not isinstance(data, Mapping):
         raise _err(source, "scenario", f"expected a JSON object, got {type(data).__name__}")
@@ -332,11 +336,18 @@ def frames_from_scenario(
         dropped["quirk:velocity_mismatch_files"] += 1
     scenario_id = str(data.get("scenario_id") or Path(source).stem)
     boxed = np.array([t != "pedestrian" for t in tracks.type])
+    sdc_field = f"objects (the SDC, id {tracks.ids[sdc]})"
+    if not (np.all(np.isfinite(tracks.size[sdc])) and np.all(tracks.size[sdc] > 0)):
+        size = tracks.size[sdc]
+        raise _err(source, f"{sdc_field}.width/length", f"not finite and positive: {size}")
     frames = []
     n_steps = tracks.valid.shape[1]
     for t in range(0, n_steps, stride):
         if not tracks.valid[sdc, t]:
             continue
+        for name in ("position", "velocity", "heading"):
+            if not np.all(np.isfinite(getattr(tracks, name)[sdc, t])):
+                raise _err(source, f"{sdc_field}.{name}", f"NaN or inf at step {t}")
         rows = np.flatnonzero(tracks.valid[:, t])
         rows = rows[rows != sdc]
         bad_size = boxed[rows] & np.any(tracks.size[rows] <= 0, axis=1)
@@ -344,6 +355,7 @@ def frames_from_scenario(
             np.all(np.isfinite(tracks.position[rows, t]), axis=1)
             & np.all(np.isfinite(tracks.velocity[rows, t]), axis=1)
             & np.isfinite(tracks.heading[rows, t])
+            & np.all(np.isfinite(tracks.size[rows]), axis=1)
         )
         dropped["invalid:size"] += int(np.sum(bad_size & finite))
         dropped["invalid:nan"] += int(np.sum(~finite))
@@ -389,6 +401,6 @@ def read_file(path: str | os.PathLike, stride: int) -> tuple[list[Frame], collec
     try:
         with open(path, encoding="utf-8") as f:
             data = json.load(f)
-    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+    except ValueError as e:  # JSONDecodeError, UnicodeDecodeError, an over-long integer
         raise ValueError(f"{path}: not valid JSON ({e})") from e
     return frames_from_scenario(data, str(path), stride)
