@@ -482,7 +482,9 @@ def cmd_models(args) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="scenegen", description=__doc__)
-    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    p.add_argument(
+        "-v", "--verbose", action="store_true", help="debug logging; tracebacks with errors"
+    )
     sub = p.add_subparsers(dest="command", required=True)
 
     sp = sub.add_parser("prepare", help="read logs into a preprocessed cache")
@@ -649,8 +651,11 @@ def main(argv: list[str] | None = None) -> None:
         logging.getLogger(noisy).setLevel(logging.WARNING)
     try:
         args.func(args)
-    except (FileNotFoundError, ValueError, IndexError) as e:
-        logging.getLogger("scenegen").error("%s", e)
+    except (OSError, ValueError, IndexError) as e:
+        # Bad input (a file, a field, a flag): one line naming it, exit 2; -v adds the
+        # traceback. Every reader raises these with the file and the field in the message.
+        log = logging.getLogger("scenegen")
+        log.error("%s", " ".join(str(e).split("\n")), exc_info=args.verbose)
         raise SystemExit(2) from e
 
 

@@ -48,7 +48,11 @@ class Config:
         above grid_size^2 it is the full softmax.
       bptt_window: W, steps per truncated-backprop window.
       batch_size: scenes per training step (global, across devices).
-      learning_rate: Adam step size.
+      learning_rate: Adam step size (after the warm-up).
+      warmup_steps: steps of a linear learning-rate ramp from 0 to `learning_rate` (beyond the
+        paper; 0 disables). Adam's first steps move every weight by about the full step size
+        whatever its gradient; the ramp keeps them from silencing backbone channels
+        (experiments/results/README.md, session 14).
       grad_clip: global-norm clip (0 disables).
       proposals: M, best-of-M draws per attribute when sampling.
       zero_speed: speeds (m/s) at or below this are the v = 0 point mass.
@@ -76,6 +80,7 @@ class Config:
     bptt_window: int = 25
     batch_size: int = 4
     learning_rate: float = 1e-3
+    warmup_steps: int = 0
     grad_clip: float = 1.0
     proposals: int = 10
     zero_speed: float = 0.2
@@ -182,6 +187,9 @@ def config_problems(cfg: Config) -> list[str]:
         v = getattr(cfg, name)
         if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
             out.append(f"{name}: must be a finite number > 0, got {v!r}")
+    if isinstance(cfg.warmup_steps, bool) or not isinstance(cfg.warmup_steps, int) \
+            or cfg.warmup_steps < 0:
+        out.append(f"warmup_steps: must be an integer >= 0, got {cfg.warmup_steps!r}")
     for name in ("grad_clip", "zero_speed"):
         v = getattr(cfg, name)
         if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):

@@ -84,6 +84,20 @@ def test_lstm_cell_gradient_equals_autodiff():
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5)
 
 
+def test_warmup_ramps_adams_step_linearly():
+    """With a constant gradient Adam's bias-corrected step is the learning rate itself, so the
+    updates are -lr * t / n for t < n warm-up steps, then -lr (hand-computed)."""
+    cfg = CFG.replace(learning_rate=1e-2, warmup_steps=4, grad_clip=0.0)
+    params = {"w": jnp.zeros(3)}
+    g = {"w": jnp.array([0.5, -2.0, 1e-3])}
+    opt = make_optimizer(cfg)
+    state = opt.init(params)
+    for t in range(6):
+        updates, state = opt.update(g, state, params)
+        lr = 1e-2 * min(t / 4, 1.0)
+        np.testing.assert_allclose(updates["w"], -lr * np.sign(g["w"]), rtol=1e-4, atol=1e-9)
+
+
 def test_group_norm_matches_flax():
     """Our GroupNorm (statistics reduced over H, W first) against flax.linen.GroupNorm, values
     and gradients, with per-channel and per-example scale and bias (the location heads)."""

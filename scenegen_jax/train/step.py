@@ -50,8 +50,11 @@ class Batch(NamedTuple):
 
 
 def make_optimizer(cfg: Config) -> optax.GradientTransformation:
-    """Adam with optional global-norm clipping."""
-    adam = optax.adam(cfg.learning_rate)
+    """Adam with an optional linear learning-rate warm-up and global-norm clipping."""
+    lr = cfg.learning_rate
+    if cfg.warmup_steps > 0:
+        lr = optax.linear_schedule(0.0, cfg.learning_rate, cfg.warmup_steps)
+    adam = optax.adam(lr)
     if cfg.grad_clip > 0:
         return optax.chain(optax.clip_by_global_norm(cfg.grad_clip), adam)
     return adam

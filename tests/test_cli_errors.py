@@ -1,0 +1,162 @@
+"""Every input error of the CLI: one log line naming the file (or the field), exit code 2, no
+traceback unless -v. Each case damages a real input before any model work starts."""
+
+from __future__ import annotations
+
+import collections
+import logging
+import os
+import shutil
+
+import pytest
+
+from scenegen_jax import cli
+from scenegen_jax.config import get_config
+from scenegen_jax.data.av2 import read_split
+from scenegen_jax.data.cache import write_cache
+
+
+@pytest.fixture(scope="module")
+def cache_dir(tmp_path_factory, data_root) -> str:
+    """A tiny-config cache of a few real val frames."""
+    out = str(tmp_path_factory.mktemp("cli_errors_cache"))
+    drops = collections.Counter()
+    write_cache(read_split(data_root, "val", drops, stride=40), out, get_config("tiny"), drops)
+    return out
+
+
+def _copy(src: str, tmp_path) -> str:
+    dst = str(tmp_path / "cache")
+    shutil.copytree(src, dst)
+    return dst
+
+
+def _truncate(path: str) -> None:
+    with open(path, "r+b") as f:
+        f.truncate(os.path.getsize(path) // 2)
+
+
+def _damaged_log_root(tmp_path, cache, data_root):
+    root = tmp_path / "av2"
+    (root / "train" / "log_with_garbage").mkdir(parents=True)
+    (root / "train" / "log_with_garbage" / "annotations.feather").write_bytes(b"not arrow")
+    argv = [
+        "prepare",
+        "--root",
+        str(root),
+        "--split",
+        "train",
+        "--out",
+        str(tmp_path / "o"),
+        "--strict",
+        "--workers",
+        "1",
+    ]
+    return argv, "log_with_garbage"
+
+
+def _truncated_actors(tmp_path, cache, data_root):
+    c = _copy(cache, tmp_path)
+    _truncate(os.path.join(c, "actors.npz"))
+    return ["train", "--data", c, "--workdir", str(tmp_path / "w"), "--steps", "1"], "actors.npz"
+
+
+def _truncated_maps(tmp_path, cache, data_root):
+    c = _copy(cache, tmp_path)
+    _truncate(os.path.join(c, "maps.npy"))
+    return ["render", "--cache", c, "--out", str(tmp_path / "r.png")], "maps.npy"
+
+
+def _output_under_a_file(tmp_path, cache, data_root):
+    (tmp_path / "a_file").write_text("")
+    return ["render", "--cache", cache, "--out", str(tmp_path / "a_file" / "r.png")], "a_file"
+
+
+def _bad_set_value(tmp_path, cache, data_root):
+    argv = [
+        "train",
+        "--data",
+        cache,
+        "--workdir",
+        str(tmp_path / "w"),
+        "--steps",
+        "1",
+        "--set",
+        "gn_groups=5",
+    ]
+    return argv, "gn_groups"
+
+
+def _missing_cache(tmp_path, cache, data_root):
+    missing = str(tmp_path / "no_such_cache")
+    return ["render", "--cache", missing, "--out", str(tmp_path / "r.png")], "no_such_cache"
+
+
+def _workdir_without_checkpoints(tmp_path, cache, data_root):
+    w = tmp_path / "w"
+    w.mkdir()
+    (w / "config.json").write_text(get_config("tiny").to_json())
+    argv = ["score", "--workdir", str(w), "--data", cache, "--out", str(tmp_path / "s.csv")]
+    return argv, "checkpoints"
+
+
+def _truncated_config(tmp_path, cache, data_root):
+    w = tmp_path / "w"
+    w.mkdir()
+    (w / "config.json").write_text(get_config("tiny").to_json()[:40])
+    argv = ["score", "--workdir", str(w), "--data", cache, "--out", str(tmp_path / "s.csv")]
+    return argv, "config.json"
+
+
+def _missing_pretrained(tmp_path, cache, data_root):
+    argv = [
+        "score",
+        "--pretrained",
+        str(tmp_path / "no_model"),
+        "--data",
+        cache,
+        "--out",
+        str(tmp_path / "s.csv"),
+    ]
+    return argv, "no_model"
+
+
+CASES = [
+    _damaged_log_root,
+    _truncated_actors,
+    _truncated_maps,
+    _output_under_a_file,
+    _bad_set_value,
+    _missing_cache,
+    _workdir_without_checkpoints,
+    _truncated_config,
+    _missing_pretrained,
+]
+
+
+def _run(argv, caplog):
+    caplog.clear()
+    with caplog.at_level(logging.ERROR, logger="scenegen"), pytest.raises(SystemExit) as e:
+        cli.main(argv)
+    errors = [r for r in caplog.records if r.name == "scenegen" and r.levelno >= logging.ERROR]
+    return e.value.code, errors
+
+
+@pytest.mark.parametrize("case", CASES, ids=lambda f: f.__name__.strip("_"))
+def test_input_error_is_one_line_naming_the_file_and_exit_2(
+    case, cache_dir, data_root, tmp_path, caplog
+):
+    argv, named = case(tmp_path, cache_dir, data_root)
+    code, errors = _run(argv, caplog)
+    assert code == 2
+    assert len(errors) == 1, [r.getMessage() for r in errors]
+    message = errors[0].getMessage()
+    assert named in message and "\n" not in message, message
+    assert not errors[0].exc_info  # no traceback without -v
+
+
+def test_verbose_adds_the_traceback(cache_dir, data_root, tmp_path, caplog):
+    argv, named = _truncated_actors(tmp_path, cache_dir, data_root)
+    code, errors = _run(["-v", *argv], caplog)
+    assert code == 2 and len(errors) == 1
+    assert named in errors[0].getMessage() and errors[0].exc_info is not None
