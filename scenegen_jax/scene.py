@@ -12,6 +12,7 @@ The location bin of an actor is the pixel holding its centre, flattened row-majo
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
@@ -178,5 +179,23 @@ def jax_tree_take(actors: Actors, index) -> Actors:
 
 
 def wrap_angle(theta):
-    """Angle in [0, 2pi)."""
-    return jnp.mod(theta, 2 * jnp.pi)
+    """Angle (rad) in [0, 2pi); NaN stays NaN.
+
+    A jax array in (traced or not) gives a jax array out; anything else a numpy array of
+    theta's float dtype (float64 for integers and Python numbers), so float64 host data keeps
+    its precision.
+    """
+    if isinstance(theta, jax.Array):
+        xp = jnp
+        if not jnp.issubdtype(theta.dtype, jnp.floating):
+            theta = theta.astype(float)
+    else:
+        xp = np
+        theta = np.asarray(theta)
+        if not np.issubdtype(theta.dtype, np.floating):
+            theta = theta.astype(np.float64)
+    two_pi = xp.asarray(2 * np.pi, theta.dtype)
+    wrapped = xp.mod(theta, two_pi)
+    # The modulo rounds a tiny negative angle up to exactly 2pi (float32: -1e-8 -> 2pi) and
+    # gives -0.0 for -2pi in jax; both are 0.
+    return xp.where((wrapped >= two_pi) | (wrapped == 0), xp.zeros((), theta.dtype), wrapped)
