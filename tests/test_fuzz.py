@@ -1,13 +1,16 @@
 """Fuzzed input surface: damaged copies of real inputs end in a clean error or a clean read.
 
 Every reader here gets real inputs (Waymo GPUDrive JSON and ScenarioNet pickles, an
-Argoverse 2 map, a config, given actors from a real scene, a cache written from real
-frames) damaged by hypothesis: truncated at random offsets, bytes flipped, fields dropped,
-values replaced by other types, arrays with other dtypes or shapes, NaN and inf. Each read
-must end either in success or in one of the errors the CLI prints as one line
-(`scenegen_jax.cli.main`: ValueError, FileNotFoundError, IndexError) whose message names the
-file (or the given source); never another exception type and never a hang. A successful read
-must hold only finite values.
+Argoverse 2 map and a log's feather tables, a config, given actors from a real scene, a cache
+written from real frames, the checkpoints of a short training run) damaged by hypothesis:
+truncated at random offsets, bytes flipped, fields or columns dropped, values replaced by
+other types, arrays with other dtypes or shapes, NaN and inf, duplicated rows, files deleted or
+emptied. Each read must end either in success or in one of the errors the CLI prints as one
+line (`scenegen_jax.cli.main`: ValueError, FileNotFoundError, IndexError) whose message names
+the file (or the given source); never another exception type and never a hang. A successful
+read must hold only finite values; an Argoverse 2 log's rows are each an actor or a counted
+drop, and a checkpoint restores bit for bit what was saved (the newest step or the one
+before it).
 
 The default profile runs a fixed, derandomized set of 25 examples per test (part of
 `make test`); HYPOTHESIS_PROFILE=fuzz (`make fuzz`) draws 200 new ones per test on each run.
@@ -19,17 +22,22 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import glob
 import json
 import math
 import os
 import pickle
 import shutil
 import signal
+import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import jax
 import numpy as np
+import pyarrow as pa
+import pyarrow.feather as feather
 import pytest
 from conftest import DATA_ROOT, WOMD_ROOT
 from hypothesis import HealthCheck, given, settings
@@ -38,10 +46,19 @@ from hypothesis import strategies as st
 from scenegen_jax.config import Config, get_config
 from scenegen_jax.data import scenarionet as SN
 from scenegen_jax.data import womd_json as W
-from scenegen_jax.data.av2 import vector_map_from_json
+from scenegen_jax.data.av2 import (
+    ANNOTATION_COLUMNS,
+    MAX_SIZE_M,
+    POSE_COLUMNS,
+    vector_map_from_json,
+)
 from scenegen_jax.data.cache import cached_scene, load_cache, write_cache
+from scenegen_jax.data.sources import read_file as read_source_file
+from scenegen_jax.data.sources import source_spec
 from scenegen_jax.sampling.export import actors_from_records
 from scenegen_jax.scene import CLASS_NAMES
+from scenegen_jax.train.checkpoint import CHECKSUM_FILE
+from scenegen_jax.train.loop import load_trained, train
 
 _COMMON = dict(
     deadline=None,
@@ -253,9 +270,11 @@ def scratch(tmp_path_factory) -> Path:
 def _report_counts():
     yield
     tests = sorted({t for t, _ in EXAMPLES})
+    notes = {t: "".join(f", {n} {kind}" for (u, kind), n in sorted(EXAMPLES.items())
+                        if u == t and kind not in ("error", "read")) for t in tests}
     print("\nfuzz examples per reader (clean errors + successful reads): " + ", ".join(
         f"{t}={EXAMPLES[t, 'error'] + EXAMPLES[t, 'read']} ({EXAMPLES[t, 'error']} + "
-        f"{EXAMPLES[t, 'read']})" for t in tests))
+        f"{EXAMPLES[t, 'read']}{notes[t]})" for t in tests))
 
 
 def _load_json(path: str) -> Any:
@@ -514,3 +533,269 @@ def test_cache_damaged_fields(small_cache, scratch, data, name):
     result = _outcome(lambda: _read_cache(path), path, "cache_fields")
     if result is not None:
         result.actors.validate("cache")
+
+
+# ---------------------------------------------------------------- Argoverse 2 feather tables
+
+ANN_FILE, POSE_FILE = "annotations.feather", "city_SE3_egovehicle.feather"
+AV2_SWEEPS = 4  # sweeps kept of the copied log, so that one read takes well under a second
+NUMERIC = {"int64", "double", "float", "int32"}
+
+
+def _table_copy(src: str, dst: Path, sweeps: int) -> dict[str, pa.Table]:
+    """Writes the first `sweeps` annotated sweeps of real log `src` (and the ego poses within
+    0.5 s of them) into `dst`, with a link to its map (read in place); returns the tables."""
+    ann = feather.read_table(os.path.join(src, ANN_FILE))
+    t = ann.column("timestamp_ns").to_numpy()
+    kept = np.unique(t)[:sweeps]
+    ann = ann.filter(pa.array(np.isin(t, kept)))
+    poses = feather.read_table(os.path.join(src, POSE_FILE))
+    pt = poses.column("timestamp_ns").to_numpy()
+    poses = poses.filter(pa.array((pt >= kept[0] - 500_000_000) & (pt <= kept[-1] + 500_000_000)))
+    dst.mkdir(parents=True)
+    os.symlink(os.path.join(src, "map"), dst / "map")
+    tables = {ANN_FILE: ann, POSE_FILE: poses}
+    for name, table in tables.items():
+        feather.write_feather(table, dst / name)
+    return tables
+
+
+def _read_av2(log_dir: Path) -> tuple[list, collections.Counter]:
+    """What `scenegen prepare --source av2` reads of one log (every sweep)."""
+    spec = source_spec("av2", str(log_dir.parent.parent), log_dir.parent.name, stride=1)
+    return read_source_file(spec, str(log_dir))
+
+
+class _Quiet(dict):
+    """A fixture's dict that hypothesis prints by name only when a test case fails."""
+
+    def __repr__(self) -> str:
+        return f"<{', '.join(self)}>"
+
+
+@pytest.fixture(scope="module")
+def av2_log(data_root, tmp_path_factory) -> dict:
+    """The real val log cut to AV2_SWEEPS sweeps: its tables, their file bytes (uncompressed
+    and lz4), its read, and the folder in which damaged copies are read."""
+    src = sorted(glob.glob(os.path.join(data_root, "val", "*")))[0]
+    root = tmp_path_factory.mktemp("fuzz_av2")
+    pristine = root / "pristine" / "val" / os.path.basename(src)
+    tables = _table_copy(src, pristine, AV2_SWEEPS)
+    frames, drops = _read_av2(pristine)
+    assert len(frames) == AV2_SWEEPS and sum(f.num_actors for f in frames) > 20
+    raw = {}
+    for name, table in tables.items():
+        for compression in ("uncompressed", "lz4"):
+            sink = pa.BufferOutputStream()
+            feather.write_feather(table, sink, compression=compression)
+            raw[name, compression] = sink.getvalue().to_pybytes()
+    damaged = root / "damaged" / "val" / os.path.basename(src)
+    damaged.mkdir(parents=True)
+    os.symlink(os.path.join(src, "map"), damaged / "map")
+    return _Quiet(tables=tables, raw=raw, frames=frames, drops=drops, dir=damaged)
+
+
+def _row_drops(drops: collections.Counter) -> int:
+    """Annotation rows dropped (not map elements, not copies of ego poses)."""
+    return sum(n for reason, n in drops.items() if not reason.startswith(("map:", "ego_pose:")))
+
+
+def _check_av2(result: Any, rows: int | None, where: str) -> None:
+    """A successful read holds only finite values, and every annotation row (`rows` in the
+    file, when known) is either an actor of a frame or a drop counted by reason."""
+    if result is None:
+        return
+    frames, drops = result
+    assert isinstance(drops, collections.Counter)
+    for fr in frames:
+        _assert_finite(
+            {k: getattr(fr, k) for k in ("position", "size", "heading", "velocity",
+                                         "ego_velocity", "ego_size", "city_from_ego")},
+            where,
+        )
+        for lane in fr.map.lanes:
+            _assert_finite({"left": lane.left, "right": lane.right}, where)
+        assert np.all(fr.size > 0) and np.all(fr.size <= MAX_SIZE_M), where
+        assert np.all((fr.heading >= 0) & (fr.heading < 2 * np.pi)), where
+        assert fr.cls.shape == fr.track_id.shape == fr.position.shape[:1], where
+    if rows is not None:
+        in_frames = sum(fr.num_actors for fr in frames)
+        assert in_frames + _row_drops(drops) == rows, (
+            f"{where}: {rows} rows, {in_frames} actors and {_row_drops(drops)} counted drops")
+
+
+def _same_frames(a: list, b: list) -> bool:
+    if len(a) != len(b):
+        return False
+    fields = ("cls", "position", "size", "heading", "velocity", "track_id", "ego_velocity",
+              "city_from_ego")
+    return all(x.scene_id == y.scene_id and all(np.array_equal(getattr(x, k), getattr(y, k))
+                                                for k in fields) for x, y in zip(a, b, strict=True))
+
+
+@given(data=st.data(), name=st.sampled_from([ANN_FILE, POSE_FILE]),
+       compression=st.sampled_from(["uncompressed", "lz4"]))
+def test_av2_feather_damaged_bytes(av2_log, data, name, compression):
+    log_dir = av2_log["dir"]
+    for other in (ANN_FILE, POSE_FILE):
+        raw = av2_log["raw"][other, compression]
+        (log_dir / other).write_bytes(_damage_bytes(raw, data.draw) if other == name else raw)
+    path = str(log_dir / name)
+    result = _outcome(lambda: _read_av2(log_dir), path, "av2_feather_bytes")
+    # Flipped bytes in an uncompressed table may change a value and nothing else: the file
+    # is then as valid as any, so only the row count is known when the table is intact.
+    rows = av2_log["tables"][ANN_FILE].num_rows if name == POSE_FILE else None
+    _check_av2(result, rows, path)
+
+
+# Columns of one type that may replace a column: values no reader can take as numbers.
+ODD_COLUMNS: list[Callable[[int], pa.Array]] = [
+    lambda n: pa.array(["x"] * n),
+    lambda n: pa.array(["1.5"] * n),
+    lambda n: pa.nulls(n),
+    lambda n: pa.nulls(n, pa.float64()),
+    lambda n: pa.array([[1.0, 2.0]] * n),
+    lambda n: pa.array([b"\x00\xff"] * n),
+    lambda n: pa.array([True] * n),
+    lambda n: pa.array([{"x": 1.0}] * n),
+    lambda n: pa.array(np.zeros(n, "datetime64[ns]")),
+]
+
+
+def _retype(values: np.ndarray, target: str) -> pa.Array:
+    """`values` as another type (strings become their lengths when a number is wanted, values
+    that convert to nothing become row numbers)."""
+    try:
+        if target == "str":
+            return pa.array(values.astype(str))
+        if values.dtype.kind in "OUS":
+            values = np.char.str_len(values.astype(str))
+        with np.errstate(all="ignore"):
+            return pa.array(values.astype(target))
+    except (ValueError, TypeError, UnicodeError):  # lists, bytes, structs, nulls
+        return pa.array(np.arange(len(values)).astype(target))
+
+
+def _mutate_table(table: pa.Table, draw) -> tuple[pa.Table, str]:
+    """`table` with a column dropped, retyped or replaced, NaN/inf or nulls in a few rows,
+    rows duplicated, or no rows; and the name of the change."""
+    n = table.num_rows
+    op = draw(st.sampled_from(["drop", "dtype", "other_type", "nonfinite", "null",
+                               "duplicate", "empty"]))
+    if op == "empty" or (n == 0 and op in ("nonfinite", "null", "duplicate")):
+        return table.slice(0, 0), "empty"
+    if op == "duplicate":
+        rows = draw(st.lists(st.integers(0, n - 1), min_size=1, max_size=5))
+        order = np.sort(np.r_[np.arange(n), rows], kind="stable")  # copies follow the original
+        return table.take(pa.array(order)), "duplicate"
+    numeric = [c for c in table.column_names if str(table.schema.field(c).type) in NUMERIC]
+    names = numeric if op == "nonfinite" and numeric else table.column_names
+    name = draw(st.sampled_from(names))
+    i = table.column_names.index(name)
+    if op == "drop":
+        return table.remove_column(i), f"drop {name}"
+    values = table.column(name).to_numpy(zero_copy_only=False)
+    if op == "dtype":
+        target = draw(st.sampled_from(["int8", "int32", "int64", "float16", "float32", "bool",
+                                       "str"]))
+        column = _retype(values, target)
+    elif op == "other_type":
+        column = draw(st.sampled_from(ODD_COLUMNS))(n)
+    else:
+        rows = draw(st.lists(st.integers(0, n - 1), min_size=1, max_size=3, unique=True))
+        if op == "nonfinite":
+            values = values.astype(np.float64)
+            values[rows] = draw(st.sampled_from([np.nan, np.inf, -np.inf]))
+            column = pa.array(values)
+        else:
+            mask = np.zeros(n, bool)
+            mask[rows] = True
+            column = pa.array(values, mask=mask)
+    return table.set_column(i, name, column), f"{op} {name}"
+
+
+@given(data=st.data(), name=st.sampled_from([ANN_FILE, POSE_FILE]))
+def test_av2_feather_damaged_columns(av2_log, data, name):
+    log_dir = av2_log["dir"]
+    table, changes = av2_log["tables"][name], []
+    for _ in range(data.draw(st.integers(1, 3))):
+        table, change = _mutate_table(table, data.draw)
+        changes.append(change)
+    for other in (ANN_FILE, POSE_FILE):
+        feather.write_feather(table if other == name else av2_log["tables"][other],
+                              log_dir / other)
+    path = str(log_dir / name)
+    result = _outcome(lambda: _read_av2(log_dir), path, "av2_feather_columns")
+    rows = (table if name == ANN_FILE else av2_log["tables"][ANN_FILE]).num_rows
+    _check_av2(result, rows, f"{path} ({', '.join(changes)})")
+    used = ANNOTATION_COLUMNS if name == ANN_FILE else POSE_COLUMNS
+    if result is not None and all(c == "duplicate" or (c.startswith("drop ") and c[5:] not in
+                                                       used) for c in changes):
+        # Copies of rows and columns the reader does not use change nothing: the frames are
+        # the undamaged log's, and each copied row is a counted drop.
+        frames, drops = result
+        assert _same_frames(frames, av2_log["frames"]), f"{path}: silent change ({changes})"
+        extra = drops - av2_log["drops"]
+        assert all(r in ("invalid:duplicate_row", "ego_pose:duplicate_row")
+                   or r.startswith("category:") for r in extra), extra
+
+
+# ---------------------------------------------------------------- checkpoints
+
+
+def _state_leaves(state: Any) -> list[np.ndarray]:
+    return [np.asarray(x) for x in jax.tree.leaves(jax.device_get(state))]
+
+
+@pytest.fixture(scope="module")
+def trained_workdir(tiny_train_cache, tmp_path_factory) -> dict:
+    """A workdir of the small test config trained 2 steps (checkpoints at steps 1 and 2),
+    the two saved states, and the files of the newest checkpoint (relative to its folder)."""
+    from small import CFG
+
+    workdir = tmp_path_factory.mktemp("fuzz_ckpt") / "wd"
+    train(CFG, tiny_train_cache.path, str(workdir), 2, save_every=1, log_every=1,
+          progress=False)
+    states = {step: _state_leaves(load_trained(str(workdir), step)[1]) for step in (1, 2)}
+    newest = workdir / "checkpoints" / "2"
+    files = sorted(str(p.relative_to(newest)) for p in newest.rglob("*") if p.is_file())
+    assert CHECKSUM_FILE in files and len(files) > 3, files
+    # Two steps of training changed the parameters: a fallback to step 1 is visible.
+    assert not all(np.array_equal(a, b) for a, b in zip(*states.values(), strict=True))
+    return _Quiet(dir=workdir, states=states, files=files)
+
+
+@given(data=st.data(), alone=st.booleans())
+def test_checkpoint_damaged_newest_step(trained_workdir, scratch, data, alone):
+    """`alone`: step 1 is deleted first, so that a damaged step 2 has nothing to fall back to:
+    the clean error, or step 2 as saved where the damage touched nothing it needs."""
+    rel = data.draw(st.sampled_from(trained_workdir["files"]))
+    op = data.draw(st.sampled_from(["bytes", "delete", "empty"]))
+    copy = Path(tempfile.mkdtemp(dir=scratch)) / "wd"  # a fresh path: no cached file handles
+    shutil.copytree(trained_workdir["dir"], copy)
+    if alone:
+        shutil.rmtree(copy / "checkpoints" / "1")
+    target = copy / "checkpoints" / "2" / rel
+    raw = target.read_bytes()
+    if op == "delete":
+        target.unlink()
+    elif op == "empty" or not raw:
+        target.write_bytes(b"")
+    else:
+        target.write_bytes(_damage_bytes(raw, data.draw))
+    where = str(copy / "checkpoints")
+    result = _outcome(lambda: load_trained(str(copy)), where, "checkpoint")
+    assert result is not None or alone, f"{rel} ({op}): the good step 1 was not restored"
+    if result is not None:
+        # The newest step if the damage changed nothing it holds, else the previous good one;
+        # bit for bit what was saved either way.
+        step = int(result[1].step)
+        assert step in ((2,) if alone else (1, 2)), step
+        EXAMPLES["checkpoint", "fell back to step 1"] += step == 1
+        got = _state_leaves(result[1])
+        want = trained_workdir["states"][step]
+        assert len(got) == len(want)
+        for i, (a, b) in enumerate(zip(got, want, strict=True)):
+            assert a.dtype == b.dtype and np.array_equal(a, b), (
+                f"{rel} ({op}): leaf {i} of step {step} restored with other values")
+    shutil.rmtree(copy.parent)

@@ -70,6 +70,8 @@ ANNOTATION_COLUMNS = (
     "qw", "qx", "qy", "qz", "tx_m", "ty_m", "tz_m",
 )  # fmt: skip
 POSE_COLUMNS = ("timestamp_ns", "qw", "qx", "qy", "qz", "tx_m", "ty_m", "tz_m")
+# Fields that are not numbers (m, rad, quaternion components), by the kind they must hold.
+FIELD_KINDS = {"timestamp_ns": "integer", "track_uuid": "string", "category": "string"}
 # Nominal ego footprint (Argoverse 2 vehicles), (width, length) m.
 AV2_EGO_SIZE = (1.95, 4.88)
 # Longer or wider boxes are not road users (articulated buses are ~18 m), m.
@@ -91,20 +93,49 @@ def list_logs(root: str, split: str) -> list[str]:
     return logs
 
 
+def _field_kind(name: str) -> str:
+    """What a field's values must be: "integer" (timestamps), "string" (ids, categories) or
+    "number" (integer or floating point; nulls read as NaN and the row is dropped)."""
+    return FIELD_KINDS.get(name, "number")
+
+
 def read_table(path: str, columns: tuple[str, ...]) -> dict[str, np.ndarray]:
-    """Reads named feather columns into numpy; errors name the file and the field."""
+    """Reads named feather columns into numpy; errors name the file and the field.
+
+    Each column must hold its field's kind of value (`FIELD_KINDS`); timestamps and strings
+    must have no nulls. A damaged file raises ValueError, never a pyarrow error.
+    """
+    import pyarrow as pa
     import pyarrow.feather as feather
 
     if not os.path.isfile(path):
         raise FileNotFoundError(f"{path}: file not found")
     try:
         table = feather.read_table(path)
+        table.validate(full=True)  # offsets and UTF-8: a damaged buffer is caught here
     except Exception as e:  # pyarrow raises several types for corrupt files
         raise ValueError(f"{path}: not a readable feather file ({e})") from e
     missing = [c for c in columns if c not in table.column_names]
     if missing:
         raise ValueError(f"{path}: missing field(s) {missing}")
-    return {c: table.column(c).to_numpy(zero_copy_only=False) for c in columns}
+    out = {}
+    for c in columns:
+        column, kind = table.column(c), _field_kind(c)
+        t = column.type.value_type if pa.types.is_dictionary(column.type) else column.type
+        ok = {
+            "integer": pa.types.is_integer(t),
+            "string": pa.types.is_string(t) or pa.types.is_large_string(t),
+            "number": pa.types.is_integer(t) or pa.types.is_floating(t),
+        }[kind]
+        if not ok and len(column):  # an empty table's columns may have any type
+            raise ValueError(f"{path}: field {c}: expected {kind} values, got {column.type}")
+        if kind != "number" and column.null_count:
+            raise ValueError(f"{path}: field {c}: {column.null_count} missing values")
+        try:
+            out[c] = column.to_numpy(zero_copy_only=False)
+        except pa.ArrowException as e:
+            raise ValueError(f"{path}: field {c}: unreadable ({e})") from e
+    return out
 
 
 def quat_to_matrix(qw, qx, qy, qz) -> np.ndarray:
@@ -342,17 +373,21 @@ def _keep_rows(ann: dict[str, np.ndarray], drops: collections.Counter, path: str
     return _drop(keep, ~first, "invalid:duplicate_row", drops, path)
 
 
-def _read_poses(path: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _read_poses(
+    path: str, drops: collections.Counter
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Ego poses sorted by time: timestamps [P] ns, rotations [P, 3, 3], translations [P, 3] m.
 
-    An empty table, NaN/inf or a quaternion that is not a rotation raise ValueError naming
-    the file and the field (the ego pose of every sweep matters, so a bad one is not dropped).
+    An empty table, NaN/inf, a quaternion that is not a rotation or two different poses at
+    one timestamp raise ValueError naming the file and the field (the ego pose of every sweep
+    matters, so a bad one is not dropped). Copies of a pose are dropped and counted
+    ("ego_pose:duplicate_row"): kept, they would bend the ego velocity's finite differences.
     """
     poses = read_table(path, POSE_COLUMNS)
     pose_t = poses["timestamp_ns"].astype(np.int64)
     if len(pose_t) == 0:
         raise ValueError(f"{path}: field timestamp_ns: no ego poses")
-    order = np.argsort(pose_t)
+    order = np.argsort(pose_t, kind="stable")
     quat = np.stack([poses[k][order] for k in ("qw", "qx", "qy", "qz")], -1).astype(np.float64)
     trans = np.stack([poses[k][order] for k in ("tx_m", "ty_m", "tz_m")], -1).astype(np.float64)
     if not np.all(np.isfinite(trans)) or not np.all(np.isfinite(quat)):
@@ -362,16 +397,26 @@ def _read_poses(path: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         raise ValueError(
             f"{path}: field qw/qx/qy/qz: {int(bad.sum())} poses are not unit quaternions"
         )
-    return pose_t[order], quat_to_matrix(*quat.T), trans
+    pose_t = pose_t[order]
+    same_t = np.r_[False, pose_t[1:] == pose_t[:-1]]
+    if same_t.any():
+        pose = np.concatenate([quat, trans], axis=-1)
+        if np.any(pose[same_t] != pose[np.flatnonzero(same_t) - 1]):
+            raise ValueError(f"{path}: field timestamp_ns: different ego poses at one timestamp")
+        drops["ego_pose:duplicate_row"] += int(same_t.sum())
+        log.warning("%s: %d rows dropped (ego_pose:duplicate_row)", path, same_t.sum())
+        pose_t, quat, trans = pose_t[~same_t], quat[~same_t], trans[~same_t]
+    return pose_t, quat_to_matrix(*quat.T), trans
 
 
 def read_log(log_dir: str, drops: DropCounter, crop_radius_m: float = 80.0) -> Iterator[Frame]:
     """Yields one Frame per annotated timestamp of a log, in time order.
 
     Rows that cannot be used (see `_keep_rows`; also rows without an ego pose at their
-    timestamp, "invalid:no_ego_pose") and degenerate map elements (`vector_map_from_json`)
-    are dropped, counted in `drops` and logged; nothing is dropped silently. A sweep whose
-    rows are all dropped is a frame without actors. A log without any usable sweep (no
+    timestamp, "invalid:no_ego_pose"), copies of ego poses (`_read_poses`) and degenerate
+    map elements (`vector_map_from_json`) are dropped, counted in `drops` and logged;
+    nothing is dropped silently. A sweep whose rows are all dropped is a frame without
+    actors. A log without any usable sweep (no
     annotation rows, no ego poses, or no annotated timestamp with an ego pose) raises
     ValueError naming the file and the field; so do unreadable files and missing fields.
     """
@@ -380,7 +425,7 @@ def read_log(log_dir: str, drops: DropCounter, crop_radius_m: float = 80.0) -> I
     ann = read_table(ann_path, ANNOTATION_COLUMNS)
     if len(ann["timestamp_ns"]) == 0:
         raise ValueError(f"{ann_path}: field timestamp_ns: no annotation rows")
-    pose_t, pose_rot, pose_trans = _read_poses(pose_path)
+    pose_t, pose_rot, pose_trans = _read_poses(pose_path, drops)
     city_map, map_drops = read_map(log_dir)
     log_id = os.path.basename(os.path.normpath(log_dir))
 
