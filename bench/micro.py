@@ -17,7 +17,8 @@ import time
 import jax
 import jax.numpy as jnp
 
-from scenegen_jax.model.network import conv, group_norm, scoring_compiler_options
+from scenegen_jax.backend import scoring_compiler_options
+from scenegen_jax.model.network import conv, group_norm
 
 GRID, HIDDEN, GROUPS = 128, 32, 8
 

@@ -149,7 +149,7 @@ def case_config(args):
     if args.config == "cpu":
         cfg = get_config("cpu", rotate_augment=False)
         if args.workdir:
-            from scenegen_jax.train.loop import load_workdir_config
+            from scenegen_jax.workdir import load_workdir_config
 
             cfg = load_workdir_config(args.workdir).replace(rotate_augment=False)
         return cfg.replace(max_actors=args.steps - 1) if args.kind != "sample" else cfg
@@ -168,7 +168,7 @@ def case_config(args):
 def case_calls(args, batch: int) -> int:
     """Concurrent calls a scoring or sampling case runs its batch as (`--workers`, default one
     per core on CPU), at most one per scene: what its row records as `workers`."""
-    from scenegen_jax.concurrency import default_workers
+    from scenegen_jax.backend import default_workers
 
     return min(default_workers() if args.workers is None else args.workers, batch)
 
@@ -177,21 +177,20 @@ def run_case(args) -> dict:
     import jax
     from synthetic import synthetic_batch
 
-    import scenegen_jax.train.unroll as unroll
-    from scenegen_jax.concurrency import concurrent_map
+    import scenegen_jax.backend as backend
+    from scenegen_jax.backend import concurrent_map, scoring_compiler_options
     from scenegen_jax.eval.nll import score_batch
-    from scenegen_jax.model.network import scoring_compiler_options
     from scenegen_jax.train.step import compile_train_step, init_state
 
     cfg = case_config(args)
     if args.step_loop:
         compiled = args.step_loop == "compiled"
-        unroll.compiled_step_loop = lambda: compiled
+        backend.compiled_step_loop = lambda: compiled
     c_in = len(cfg.map_channels) + ACTOR_CHANNELS
     out = {"what": args.kind, "ours": True, "config": cfg.name, "grid": cfg.grid_size,
            "hidden": cfg.hidden, "batch": args.batch, "map_ch": len(cfg.map_channels)}
-    if args.kind != "sample" and unroll.compiled_step_loop():
-        out.update(step_loop="compiled", step_loop_unroll=unroll.STEP_LOOP_UNROLL)
+    if args.kind != "sample" and backend.compiled_step_loop():
+        out.update(step_loop="compiled", step_loop_unroll=backend.STEP_LOOP_UNROLL)
     elif args.kind != "sample":
         out["step_loop"] = "unrolled"
     state = init_state(cfg)
@@ -265,14 +264,14 @@ def sample_case(cfg, params, args) -> dict:
     import numpy as np
     from synthetic import synthetic_batch
 
-    from scenegen_jax.sampling.rollout import FULL, sample_scenes
+    from scenegen_jax.likelihood.batch import crop_batch
+    from scenegen_jax.sampling import FULL, SamplerOptions, sample_scenes
     from scenegen_jax.scene import STOP
-    from scenegen_jax.train.step import crop_batch
 
     b = args.batch
     if args.workdir:  # the trained model on real validation maps: realistic scene lengths
         from scenegen_jax.data.cache import load_cache
-        from scenegen_jax.train.data import gather_batch
+        from scenegen_jax.likelihood.batch import gather_batch
         from scenegen_jax.train.loop import load_trained
 
         cfg, state = load_trained(args.workdir)
@@ -292,7 +291,7 @@ def sample_case(cfg, params, args) -> dict:
 
     def fn():
         s = sample_scenes(jax.random.key(next(counter)), params, cfg, maps, scenes.ego,
-                          parallel=args.parallel, workers=args.workers)
+                          options=SamplerOptions(parallel=args.parallel), workers=args.workers)
         last["s"] = s
         return s.actors.valid
 
@@ -576,7 +575,7 @@ def main() -> None:
                    "window; the paper preset's is 25)")
     c.add_argument("--step-loop", choices=("compiled", "unrolled"),
                    help="train and score: a window's steps as a compiled loop or unrolled "
-                   "(default: the backend's, `unroll.compiled_step_loop`)")
+                   "(default: the backend's, `backend.compiled_step_loop`)")
     c.add_argument("--batch", type=int, default=1)
     c.add_argument("--runs", type=int, default=5)
     c.add_argument("--parallel", type=int, help="sampling: scenes vmapped together "

@@ -5,9 +5,9 @@ from __future__ import annotations
 import jax
 import numpy as np
 
+from scenegen_jax.likelihood.batch import Batch
 from scenegen_jax.raster.map import ALL_MAP_CHANNELS
 from scenegen_jax.scene import Actors, canonical_order, make_ego
-from scenegen_jax.train.step import Batch
 
 
 def synthetic_batch(cfg, b: int, n_actors: int, seed: int = 0) -> Batch:
@@ -29,5 +29,5 @@ def synthetic_batch(cfg, b: int, n_actors: int, seed: int = 0) -> Batch:
         )
         actors.append(jax.tree.map(np.asarray, canonical_order(a, cfg)))
     stacked = jax.tree.map(lambda *x: np.stack(x), *actors)
-    egos = jax.tree.map(lambda *x: np.stack(x), *[make_ego(cfg)] * b)
+    egos = jax.tree.map(lambda *x: np.stack(x), *[make_ego(cfg.ego_size_m)] * b)
     return Batch(canvas=canvas, actors=stacked, ego=egos)

@@ -28,13 +28,12 @@ import numpy as np
 
 from scenegen_jax.data.cache import ACTOR_FIELDS, load_cache
 from scenegen_jax.eval.nll import score_cache, summarize_scores
+from scenegen_jax.likelihood.batch import crop_batch, gather_batch
 from scenegen_jax.model.network import SceneGenNet
 from scenegen_jax.raster.actors import draw_actor, empty_actor_raster
 from scenegen_jax.raster.transform import crop_map
 from scenegen_jax.scene import CLASS_NAMES, Actors, bin_index, in_region
-from scenegen_jax.train.data import gather_batch
 from scenegen_jax.train.loop import load_trained
-from scenegen_jax.train.step import crop_batch
 
 
 def subset(cache, idx):

@@ -20,11 +20,11 @@ import numpy as np
 from scenegen_jax.config import get_config
 from scenegen_jax.data.cache import load_cache
 from scenegen_jax.distributions import params as P
+from scenegen_jax.likelihood.batch import crop_batch, gather_batch
 from scenegen_jax.model.network import SceneGenNet, conv, lstm_gates
 from scenegen_jax.raster.actors import draw_actor
 from scenegen_jax.scene import VEHICLE, bin_index
-from scenegen_jax.train.data import gather_batch
-from scenegen_jax.train.step import crop_batch, init_state
+from scenegen_jax.train.step import init_state
 
 
 def load(src: str, arg: int | None):

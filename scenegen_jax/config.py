@@ -29,6 +29,11 @@ LAYER_GROUPS: dict[str, tuple[str, ...]] = {
 ALL_LAYER_GROUPS: tuple[str, ...] = ("lanes", "drivable", "crosswalks")
 
 
+# Fields that only training reads (the scorer and the sampler see `Config.inference()`).
+TRAINING_ONLY = ("name", "hard_negatives", "batch_size", "learning_rate", "warmup_steps",
+                 "grad_clip", "rotate_augment", "map_dropout", "remat", "seed")
+
+
 @dataclasses.dataclass(frozen=True)
 class Config:
     """All hyperparameters of data, model, training and sampling.
@@ -118,6 +123,13 @@ class Config:
 
     def replace(self, **kw: Any) -> Config:
         return dataclasses.replace(self, **kw)
+
+    def inference(self) -> Config:
+        """This config with the fields only training reads (`TRAINING_ONLY`) at their defaults:
+        the static config of the scorer and the sampler, so that a change of learning rate,
+        seed or batch size does not compile them again."""
+        defaults = {f.name: f.default for f in dataclasses.fields(self)}
+        return self.replace(**{name: defaults[name] for name in TRAINING_ONLY})
 
     def to_json(self) -> str:
         return json.dumps(dataclasses.asdict(self), indent=2)

@@ -106,15 +106,18 @@ def empty_actors(n: int) -> Actors:
     )
 
 
-def make_ego(cfg: Config, velocity=(0.0, 0.0), heading: float = 0.0) -> Actors:
-    """The ego as an unbatched Actors (at the origin)."""
+def make_ego(size, velocity=(0.0, 0.0), heading: float = 0.0) -> Actors:
+    """The ego at the origin (class VEHICLE, valid), one or a batch: size [..., 2] (width,
+    length) m, velocity [..., 2] m/s broadcast to it, heading rad."""
+    size = np.asarray(size, np.float32)
+    lead = size.shape[:-1]
     return Actors(
-        cls=np.int32(VEHICLE),
-        position=np.zeros((2,), np.float32),
-        size=np.asarray(cfg.ego_size_m, np.float32),
-        heading=np.float32(heading),
-        velocity=np.asarray(velocity, np.float32),
-        valid=np.bool_(True),
+        cls=np.full(lead, VEHICLE, np.int32),
+        position=np.zeros((*lead, 2), np.float32),
+        size=size,
+        heading=np.full(lead, heading, np.float32),
+        velocity=np.broadcast_to(np.asarray(velocity, np.float32), (*lead, 2)).copy(),
+        valid=np.ones(lead, bool),
     )
 
 

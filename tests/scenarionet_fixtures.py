@@ -22,8 +22,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from scenegen_jax.data.vector_map import rotation_matrix
 from scenegen_jax.scene import BICYCLIST, PEDESTRIAN, VEHICLE
+from scenegen_jax.vector_map import rotation_matrix
 
 # World pose of the ego at the reference step.
 X0, Y0, TH = 1250.0, -380.0, 0.6

@@ -10,9 +10,9 @@ import scipy.stats
 import shapely
 
 from scenegen_jax.config import get_config
-from scenegen_jax.data.vector_map import Lane, VectorMap
 from scenegen_jax.eval import baselines as B
 from scenegen_jax.scene import BICYCLIST, VEHICLE, Actors, Scene, bin_index, make_ego
+from scenegen_jax.vector_map import Lane, VectorMap
 
 CFG = get_config("cpu")
 LANE_CLASSES = {"VEHICLE": VEHICLE, "BUS": VEHICLE, "BIKE": BICYCLIST}
@@ -78,7 +78,7 @@ def test_valid_scenes_on_real_frames(method, frames, generated):
     for frame, actors in zip(frames, generated[method], strict=True):
         assert actors.valid.shape == (CFG.max_actors,)
         assert isinstance(actors.position, np.ndarray) and actors.position.dtype == np.float32
-        Scene(actors=actors, ego=make_ego(CFG)).validate(CFG)  # values, region, order
+        Scene(actors=actors, ego=make_ego(CFG.ego_size_m)).validate(CFG)  # values, region, order
         cls, pos, size, heading, vel = valid_rows(actors)
         n = len(cls)
         counts.append(n)
@@ -267,7 +267,7 @@ def test_max_actors_caps_the_scene(frames, size_kde):
         B.procedural(np.random.default_rng(0), frames[0], cfg, size_kde),
     ):
         assert actors.valid.shape == (5,) and actors.valid.all()
-        Scene(actors=actors, ego=make_ego(cfg)).validate(cfg)
+        Scene(actors=actors, ego=make_ego(cfg.ego_size_m)).validate(cfg)
 
 
 # ------------------------------------------------------------------------ geometry, KDE

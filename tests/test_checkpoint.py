@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from small import CFG
 
-from scenegen_jax.train.checkpoint import CHECKSUM_FILE, TMP_MARKER, Checkpointer
+from scenegen_jax.checkpoint import CHECKSUM_FILE, TMP_MARKER, Checkpointer
 from scenegen_jax.train.loop import load_trained, train
 from scenegen_jax.train.step import init_state
 

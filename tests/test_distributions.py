@@ -512,17 +512,20 @@ def attribute_cases():
 @pytest.mark.parametrize("name", ["class", "location", "box", "heading", "velocity"])
 def test_best_of_m_picks_most_likely_draw(name):
     sample_fn, log_prob_fn, params = attribute_cases()[name]
-    key, m = jax.random.key(9), 6
-    best, best_lp = jax.jit(lambda k, p: D.best_of_m(k, sample_fn, log_prob_fn, p, m))(key, params)
+    keys, m = jax.random.split(jax.random.key(9), 2), 6
+    batched = jax.tree.map(lambda x: jnp.stack([x, x]), params)  # R = 2 examples
+    best = jax.jit(lambda k, p: D.best_of_m(k, sample_fn, log_prob_fn, p, m))(keys, batched)
     sample_j, log_prob_j = jax.jit(sample_fn), jax.jit(log_prob_fn)
-    draws = [sample_j(k, params) for k in jax.random.split(key, m)]
-    lps = np.array([float(log_prob_j(params, d)) for d in draws])
-    assert len(set(np.round(lps, 4))) > 1 or name == "class"  # draws actually differ
-    i = int(np.argmax(lps))
-    jax.tree_util.tree_map(np.testing.assert_array_equal, best, draws[i])
-    assert_close(best_lp, lps.max(), rtol=1e-5, atol=1e-5)
-    one, _ = jax.jit(lambda k, p: D.best_of_m(k, sample_j, log_prob_j, p, 1))(key, params)
-    jax.tree_util.tree_map(np.testing.assert_array_equal, one, sample_j(key, params))
+    for r in range(2):  # example r's proposals use split(keys[r], m)
+        draws = [sample_j(k, params) for k in jax.random.split(keys[r], m)]
+        lps = np.array([float(log_prob_j(params, d)) for d in draws])
+        assert len(set(np.round(lps, 4))) > 1 or name == "class"  # draws actually differ
+        want = draws[int(np.argmax(lps))]
+        jax.tree_util.tree_map(lambda x, w, r=r: np.testing.assert_array_equal(x[r], w),
+                               best, want)
+    one = jax.jit(lambda k, p: D.best_of_m(k, sample_j, log_prob_j, p, 1))(keys, batched)
+    jax.tree_util.tree_map(lambda x, w: np.testing.assert_array_equal(x[0], w), one,
+                           sample_j(jax.random.split(keys[0], 1)[0], params))
 
 
 # ----------------------------------------------------------------------------- actor term

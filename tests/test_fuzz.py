@@ -43,6 +43,7 @@ from conftest import DATA_ROOT, WOMD_ROOT
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from scenegen_jax.checkpoint import CHECKSUM_FILE
 from scenegen_jax.config import Config, get_config
 from scenegen_jax.data import scenarionet as SN
 from scenegen_jax.data import womd_json as W
@@ -57,7 +58,6 @@ from scenegen_jax.data.sources import read_file as read_source_file
 from scenegen_jax.data.sources import source_spec
 from scenegen_jax.sampling.export import actors_from_records
 from scenegen_jax.scene import CLASS_NAMES
-from scenegen_jax.train.checkpoint import CHECKSUM_FILE
 from scenegen_jax.train.loop import load_trained, train
 
 _COMMON = dict(

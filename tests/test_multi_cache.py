@@ -15,19 +15,18 @@ import pytest
 from small import CFG
 
 from scenegen_jax.data.cache import check_compatible, load_cache, write_cache
-from scenegen_jax.data.frame import Frame
-from scenegen_jax.data.vector_map import VectorMap
+from scenegen_jax.data.union import CacheUnion, load_union
+from scenegen_jax.frame import Frame
+from scenegen_jax.likelihood.batch import gather_batch
 from scenegen_jax.scene import BICYCLIST, PEDESTRIAN, VEHICLE
 from scenegen_jax.train import data as D
 from scenegen_jax.train.data import (
-    CacheUnion,
     batch_indices,
     draw_indices,
-    gather_batch,
-    load_union,
     resolve_weights,
     union_indices,
 )
+from scenegen_jax.vector_map import VectorMap
 
 SIZES = {VEHICLE: (1.9, 4.6), PEDESTRIAN: (0.6, 0.6), BICYCLIST: (0.7, 1.8)}
 
@@ -202,10 +201,10 @@ def _combined(parts: list[dict], field: str, count) -> float:
 
 
 def test_per_source_summaries_combine_to_the_overall_one(caches, tmp_path, capsys):
+    from scenegen_jax.checkpoint import Checkpointer
     from scenegen_jax.cli import main
     from scenegen_jax.eval.nll import score_cache, summarize_by_source, summarize_scores
     from scenegen_jax.scene import CLASS_NAMES
-    from scenegen_jax.train.checkpoint import Checkpointer
     from scenegen_jax.train.loop import save_or_check_config
     from scenegen_jax.train.step import init_state
 

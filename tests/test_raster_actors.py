@@ -156,7 +156,7 @@ def test_motion_channels_at_centre(cls, channel):
 
 def test_ego_channel_and_stationary_direction():
     cfg = _cfg(32, 2.5)
-    ego = make_ego(cfg, velocity=(0.1, 0.0))  # below cfg.zero_speed: direction undefined
+    ego = make_ego(cfg.ego_size_m, velocity=(0.1, 0.0))  # below cfg.zero_speed: direction undefined
     raster = draw_actor(empty_actor_raster(cfg), ego, True, cfg)
     centre = np.asarray(raster[cfg.grid_size // 2, cfg.grid_size // 2])
     assert float(raster[..., CH["occ_ego"]].sum() * cfg.bin_area) == pytest.approx(
@@ -170,7 +170,7 @@ def test_ego_channel_and_stationary_direction():
 def test_invalid_actor_leaves_raster_unchanged():
     cfg = _cfg(32, 2.5)
     base = rasterize_actors(
-        _random_actors(np.random.default_rng(0), 5, cfg, 5), make_ego(cfg), cfg, 5
+        _random_actors(np.random.default_rng(0), 5, cfg, 5), make_ego(cfg.ego_size_m), cfg, 5
     )
     actor = _actor(VEHICLE, (0.0, 0.0), (2.0, 5.0), 0.3, (2.0, 1.0), valid=False)
     np.testing.assert_array_equal(draw_actor(base, actor, False, cfg), base)
@@ -194,7 +194,7 @@ def test_occupancy_is_max_and_motion_overwrites():
 def test_upto_counts_and_jit_matches_eager():
     cfg = _cfg(32, 2.5)
     actors = _random_actors(np.random.default_rng(1), 6, cfg, 4)
-    ego = make_ego(cfg, velocity=(3.0, 0.0))
+    ego = make_ego(cfg.ego_size_m, velocity=(3.0, 0.0))
     eager = rasterize_actors(actors, ego, cfg, 3)
     jitted = jax.jit(functools.partial(rasterize_actors, cfg=cfg))
     np.testing.assert_allclose(jitted(actors, ego, upto=jnp.int32(3)), eager, atol=1e-6)
@@ -210,7 +210,7 @@ def test_vmap_over_batch():
     batch = [_random_actors(rng, 5, cfg, v) for v in (5, 2, 0)]
     stacked = jax.tree.map(lambda *x: jnp.stack(x), *batch)
     egos = jax.tree.map(
-        lambda *x: jnp.stack(x), *[make_ego(cfg, (float(i), 0.0)) for i in range(3)]
+        lambda *x: jnp.stack(x), *[make_ego(cfg.ego_size_m, (float(i), 0.0)) for i in range(3)]
     )
     upto = jnp.array([5, 1, 3], jnp.int32)
     fn = jax.jit(jax.vmap(functools.partial(rasterize_actors, cfg=cfg)))
@@ -226,7 +226,7 @@ def test_sequence_matches_rasterize():
     cfg = _cfg(32, 2.5)
     n = 6
     actors = _random_actors(np.random.default_rng(3), n, cfg, 5)
-    ego = make_ego(cfg, velocity=(2.0, 1.0))
+    ego = make_ego(cfg.ego_size_m, velocity=(2.0, 1.0))
     seq = jax.jit(functools.partial(actor_rasters_sequence, cfg=cfg))(actors, ego)
     assert seq.shape == (n + 1, 32, 32, 9)
     for i in range(n + 1):

@@ -7,10 +7,10 @@ import pytest
 
 from scenegen_jax.config import get_config
 from scenegen_jax.data.cache import cached_scene
-from scenegen_jax.data.vector_map import Lane, VectorMap, rotation_matrix
 from scenegen_jax.raster.map import ALL_MAP_CHANNELS, rasterize_map, select_channels
 from scenegen_jax.raster.transform import crop_map, scene_from_cached
 from scenegen_jax.scene import VEHICLE, pixel_of
+from scenegen_jax.vector_map import Lane, VectorMap, rotation_matrix
 
 CH = {name: i for i, name in enumerate(ALL_MAP_CHANNELS)}
 

@@ -27,7 +27,6 @@ from scenegen_jax.distributions import (
     BOX_PARAMS,
     HEADING_PARAMS,
     VELOCITY_PARAMS,
-    best_of_m,
     box_proposal_score,
     heading_log_prob,
     sample_box,
@@ -35,6 +34,7 @@ from scenegen_jax.distributions import (
     sample_velocity,
     velocity_proposal_score,
 )
+from scenegen_jax.geometry import boxes_overlap
 from scenegen_jax.sampling import (
     COLLISION,
     FULL,
@@ -45,15 +45,16 @@ from scenegen_jax.sampling import (
     NO_BIN,
     STOP_TOKEN,
     NetworkModel,
+    SamplerOptions,
     actor_records,
     actors_from_records,
     batch_inputs,
-    boxes_overlap,
     sample_attributes,
     sample_batch,
     sample_scenes,
     scene_keys,
 )
+from scenegen_jax.sampling.batch import _sample_batch
 from scenegen_jax.scene import (
     BICYCLIST,
     PEDESTRIAN,
@@ -130,7 +131,7 @@ def test_boxes_overlap_matches_shapely():
 
 # ----------------------------------------------------------------------------- best-of-M
 def test_sample_attributes_keeps_the_most_likely_of_m_proposals():
-    """The flattened best-of-M equals `distributions.best_of_m` per actor and attribute."""
+    """The flattened best-of-M equals the most likely of M draws written out per actor."""
     rng = np.random.default_rng(1)
     r, m = 3, 7
     cls = jnp.array([VEHICLE, BICYCLIST, PEDESTRIAN], jnp.int32)
@@ -142,10 +143,14 @@ def test_sample_attributes_keeps_the_most_likely_of_m_proposals():
 
     @jax.jit
     def reference(keys, box, heading, velocity, relative):
+        def best(k, sample, score, p):  # the most likely of m draws, written out
+            draws = jax.vmap(lambda kk: sample(kk, p))(jax.random.split(k, m))
+            return draws[jnp.argmax(jax.vmap(lambda d: score(p, d))(draws))]
+
         def one(k, b, h, v, rel):
             k_box, k_head, k_vel = jax.random.split(k, 3)
-            size, _ = best_of_m(k_box, sample_box, box_proposal_score, b, m)
-            head, _ = best_of_m(k_head, sample_heading, heading_log_prob, h, m)
+            size = best(k_box, sample_box, box_proposal_score, b)
+            head = best(k_head, sample_heading, heading_log_prob, h)
             # Velocity: the first proposal decides standing vs moving; a moving actor keeps
             # its best moving proposal.
             zero = TINY.zero_speed
@@ -315,7 +320,8 @@ def run_fake(params, given=None, caps=None, seed=0):
     g, c = batch_inputs(FAKE_CFG, 1, given, caps)
     out = sample_batch(scene_keys(jax.random.key(seed), 1, num), params, maps,
                        broadcast(ego_of(FAKE_CFG), 1), g, c, cfg=FAKE_CFG,
-                       heatmap_steps=FAKE_STEPS, model=FakeModel(FAKE_CFG))
+                       options=SamplerOptions(heatmap_steps=FAKE_STEPS),
+                       model=FakeModel(FAKE_CFG))
     return jax.tree.map(lambda x: np.asarray(x[0]), out)
 
 
@@ -476,8 +482,9 @@ def real_inputs(val_cache):
 
 def run_real(params, maps, egos, key, given=None, caps=None, num_per_map=2, parallel=None,
              workers=1):
+    options = SamplerOptions(parallel=parallel)
     return jax.tree.map(np.asarray, sample_scenes(key, params, TINY, maps, egos, given,
-                                                  num_per_map, caps, parallel=parallel,
+                                                  num_per_map, caps, options=options,
                                                   workers=workers))
 
 
@@ -504,7 +511,7 @@ def test_real_network_scene_properties_and_reproducibility(real_inputs):
     params, maps, egos = real_inputs
     key = jax.random.key(7)
     out = run_real(params, maps, egos, key)
-    compiled = sample_batch._cache_size()
+    compiled = _sample_batch._cache_size()
     again = run_real(params, maps, egos, key)
     jax.tree.map(np.testing.assert_array_equal, out, again)  # same key: bit for bit
     other = run_real(params, maps, egos, jax.random.key(8))
@@ -513,7 +520,7 @@ def test_real_network_scene_properties_and_reproducibility(real_inputs):
 
     caps = np.array([6, 3, 2])
     capped = run_real(params, maps, egos, jax.random.key(9), caps=caps)
-    assert sample_batch._cache_size() == compiled  # new keys and caps: no recompile
+    assert _sample_batch._cache_size() == compiled  # new keys and caps: no recompile
     counts, reasons, rejected = [], collections.Counter(), 0
     for sample, c in ((out, None), (other, None), (capped, caps)):
         for b in range(2):
@@ -587,7 +594,7 @@ def test_real_network_given_actors_and_batch_equals_single_calls(real_inputs, va
     for b, s in itertools.product(range(2), range(2)):
         one = sample_batch(keys[b:b + 1, s:s + 1], params, maps[b:b + 1],
                            jax.tree.map(lambda x, b=b: x[b:b + 1], egos), given_one, caps_one,
-                           cfg=TINY, proposals=None, heatmap_steps=HEATMAP_STEPS)
+                           cfg=TINY, options=SamplerOptions(heatmap_steps=HEATMAP_STEPS))
         one = jax.tree.map(lambda x: np.asarray(x)[0, 0], one)
         for batch in batches:
             want = slot(batch, b, s)
@@ -604,9 +611,9 @@ def test_real_network_given_actors_and_batch_equals_single_calls(real_inputs, va
 # ----------------------------------------------------------------------------- CLI
 def test_cli_sample_end_to_end(tmp_path, val_cache):
     """A workdir holding an (untrained) checkpoint -> `scenegen sample` outputs."""
+    from scenegen_jax.checkpoint import Checkpointer
     from scenegen_jax.cli import main
     from scenegen_jax.data.scenarionet import frames_from_scenario, read_scenario
-    from scenegen_jax.train.checkpoint import Checkpointer
     from scenegen_jax.train.loop import save_or_check_config
 
     workdir = str(tmp_path / "wd")
@@ -718,7 +725,8 @@ def test_given_overlaps_are_refused_unless_allowed():
 
 
 def test_read_given_checks_each_line_against_the_egos_it_meets(tmp_path):
-    from scenegen_jax.cli import build_parser, read_given
+    from scenegen_jax.cli import build_parser
+    from scenegen_jax.sampling.export import read_given
 
     path = tmp_path / "given.jsonl"
     ahead = json.dumps({"actors": [_vehicle(6.0, 0.0)]})  # x in [4, 8] m

@@ -11,18 +11,19 @@ import numpy as np
 import pytest
 import scenarionet_fixtures as fx
 import shapely
+from frames import frame_differences
 
 from scenegen_jax.data import scenarionet as sn
-from scenegen_jax.data.frame import Frame
 from scenegen_jax.data.safe_pickle import (
     CorruptPickleError,
     UnsafePickleError,
     dump_pickle,
     load_pickle,
 )
-from scenegen_jax.data.vector_map import ROAD_EDGE, Lane, RoadLine, VectorMap, rotation_matrix
+from scenegen_jax.frame import Frame
 from scenegen_jax.raster.map import ALL_MAP_CHANNELS, rasterize_map
 from scenegen_jax.scene import BICYCLIST, PEDESTRIAN, VEHICLE
+from scenegen_jax.vector_map import ROAD_EDGE, Lane, RoadLine, VectorMap, rotation_matrix
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 WOMD_ROOT = os.path.normpath(os.path.join(REPO, "..", "shared", "data", "womd_mini", "scenarionet"))
@@ -170,7 +171,7 @@ def test_round_trip_through_pickle_is_lossless(tmp_path):
 
     assert dropped == collections.Counter()
     assert back.source == str(path)
-    assert sn.frame_differences(frame, back, atol=1e-5) == []
+    assert frame_differences(frame, back, atol=1e-5) == []
     # float32 tracks: exact up to rounding; lane boundaries travel in float64 extras.
     np.testing.assert_allclose(back.position, frame.position, atol=1e-5)
     np.testing.assert_allclose(back.velocity, frame.velocity, atol=1e-5)
@@ -187,11 +188,11 @@ def test_frame_differences_detects_changes():
     other.heading = other.heading.copy()
     other.heading[2] = 0.5
     other.velocity = other.velocity + 0.01
-    assert sn.frame_differences(frame, other) == ["velocity", "heading"]
+    assert frame_differences(frame, other) == ["velocity", "heading"]
     # headings 2pi - eps and 0 are the same angle
     other = _hand_frame()
     other.heading = np.where(np.isclose(other.heading, 6.2831), 6.2831 - 2 * np.pi, other.heading)
-    assert sn.frame_differences(frame, other) == []
+    assert frame_differences(frame, other) == []
 
 
 def test_export_has_scenarionet_shape():
@@ -262,7 +263,7 @@ def test_sdc_id_avoids_actor_named_ego():
     s = sn.scenario_from_frame(frame, "x")
     assert s["metadata"]["sdc_id"] != "ego"
     [(back, _)] = sn.frames_from_scenario(s, "x.pkl")
-    assert sn.frame_differences(frame, back, atol=1e-5) == []
+    assert frame_differences(frame, back, atol=1e-5) == []
 
 
 def test_write_dataset_and_read_directory(tmp_path):
@@ -284,7 +285,7 @@ def test_write_dataset_and_read_directory(tmp_path):
     assert len(got) == 2
     by_id = {g.frame.scene_id: g for g in got}
     for f in frames:
-        assert sn.frame_differences(f, by_id[f.scene_id].frame, atol=1e-5) == []
+        assert frame_differences(f, by_id[f.scene_id].frame, atol=1e-5) == []
         assert by_id[f.scene_id].dropped == collections.Counter()
 
 
@@ -663,7 +664,7 @@ def test_rotated_ego_frame_round_trip():
     world_from_ego = np.array([[*rot[0], shift[0]], [*rot[1], shift[1]], [0.0, 0.0, 1.0]])
     s["metadata"]["scenegen_city_from_world"] = frame.city_from_ego @ np.linalg.inv(world_from_ego)
     [(back, _)] = sn.frames_from_scenario(s, "x.pkl")
-    assert sn.frame_differences(frame, back, atol=1e-4) == []
+    assert frame_differences(frame, back, atol=1e-4) == []
 
 
 def test_headings_wrap_into_range():
@@ -690,7 +691,7 @@ def test_real_argoverse_scene_round_trip(all_frames, tmp_path):
         path = tmp_path / "scene.pkl"
         sn.write_scenario(sn.scenario_from_frame(frame, frame.scene_id), path)
         [(back, dropped)] = sn.frames_from_scenario(sn.read_scenario(path), str(path))
-        assert sn.frame_differences(frame, back) == [] and not dropped
+        assert frame_differences(frame, back) == [] and not dropped
 
 
 # ----------------------------------------------------------------------------- real converters
@@ -875,7 +876,7 @@ def test_imported_converter_frame_round_trips_through_export(tmp_path):
     path = tmp_path / "x.pkl"
     sn.write_scenario(sn.scenario_from_frame(frame, frame.scene_id), path)
     [(back, dropped)] = sn.frames_from_scenario(sn.read_scenario(path), str(path))
-    assert sn.frame_differences(frame, back, atol=1e-4) == [] and not dropped
+    assert frame_differences(frame, back, atol=1e-4) == [] and not dropped
 
 
 # ----------------------------------------------------------------------------- real WOMD pickles

@@ -57,24 +57,25 @@ def test_canonical_order_sorts_left_right_top_bottom():
 
 
 def test_validate_names_the_field():
-    ok = Scene(actors=canonical_order(_actors([[1.0, 2.0], [3.0, -4.0]]), CFG), ego=make_ego(CFG))
+    actors = canonical_order(_actors([[1.0, 2.0], [3.0, -4.0]]), CFG)
+    ok = Scene(actors=actors, ego=make_ego(CFG.ego_size_m))
     jax.tree.map(np.asarray, ok).validate(CFG)
     bad = _actors([[1.0, 2.0]])
     bad.size[0] = (0.0, 4.0)
     with pytest.raises(ValueError, match="size"):
-        Scene(actors=bad, ego=make_ego(CFG)).validate(CFG)
+        Scene(actors=bad, ego=make_ego(CFG.ego_size_m)).validate(CFG)
     bad = _actors([[1.0, np.nan]])
     with pytest.raises(ValueError, match="position"):
-        Scene(actors=bad, ego=make_ego(CFG)).validate(CFG)
+        Scene(actors=bad, ego=make_ego(CFG.ego_size_m)).validate(CFG)
     far = _actors([[500.0, 0.0]])
     with pytest.raises(ValueError, match="outside"):
-        Scene(actors=far, ego=make_ego(CFG)).validate(CFG)
+        Scene(actors=far, ego=make_ego(CFG.ego_size_m)).validate(CFG)
     unordered = _actors([[10.0, -10.0], [-10.0, 10.0]])
     with pytest.raises(ValueError, match="canonical"):
-        Scene(actors=unordered, ego=make_ego(CFG)).validate(CFG)
+        Scene(actors=unordered, ego=make_ego(CFG.ego_size_m)).validate(CFG)
     ped = _actors([[1.0, 2.0]], cls=[PEDESTRIAN])
     ped.size[0] = 0.0  # pedestrians have no box
-    Scene(actors=ped, ego=make_ego(CFG)).validate(CFG)
+    Scene(actors=ped, ego=make_ego(CFG.ego_size_m)).validate(CFG)
 
 
 def test_cache_scenes_are_valid_and_complete(tiny_train_cache):
@@ -132,6 +133,6 @@ def test_overflow_is_counted():
     cfg = CFG.replace(max_actors=3)
     a = _actors([[x, 0.0] for x in (-30.0, -10.0, 5.0, 20.0, 30.0)])
     canvas = np.zeros((cfg.canvas_size, cfg.canvas_size, 11), np.float32)
-    _, scene, overflow = scene_from_cached(canvas, a, make_ego(cfg), 0.0, cfg)
+    _, scene, overflow = scene_from_cached(canvas, a, make_ego(cfg.ego_size_m), 0.0, cfg)
     assert int(overflow) == 2 and int(np.sum(scene.actors.valid)) == 3
     assert isinstance(scene.actors, Actors)

@@ -14,11 +14,29 @@ import pytest
 from small import CFG, two_small_scenes
 
 from scenegen_jax.distributions import TERMS
-from scenegen_jax.eval.nll import off_road_point, score_batch, score_cache, worst_scenes
+from scenegen_jax.eval.nll import score_batch, score_cache, worst_scenes
+from scenegen_jax.likelihood.batch import Batch, gather_batch
 from scenegen_jax.raster.transform import crop_map
-from scenegen_jax.scene import VEHICLE, in_region
-from scenegen_jax.train.data import gather_batch
-from scenegen_jax.train.step import Batch, init_state, make_train_step
+from scenegen_jax.scene import VEHICLE, in_region, pixel_centers
+from scenegen_jax.train.step import init_state, make_train_step
+
+
+def off_road_point(drivable: np.ndarray, cfg) -> np.ndarray:
+    """(x, y) m of the bin centre farthest from the drivable area (inside a city block).
+
+    Args:
+      drivable: bool [H, W] drivable area on the model's grid (`scenegen_jax.scene` layout).
+    Returns:
+      float32 [2]; raises if the whole region is drivable.
+    """
+    from scipy import ndimage
+
+    drivable = np.asarray(drivable, bool)
+    if drivable.all():
+        raise ValueError("the whole region is drivable: no off-road point")
+    distance = ndimage.distance_transform_edt(~drivable)
+    row, col = np.unravel_index(np.argmax(distance), distance.shape)
+    return pixel_centers(cfg)[row, col]
 
 
 @pytest.fixture(scope="module")

@@ -15,25 +15,21 @@ import numpy as np
 import pytest
 from small import CFG, random_params, two_small_scenes
 
+from scenegen_jax.likelihood.batch import Batch, check_batch, crop_batch, gather_batch
+from scenegen_jax.likelihood.unroll import unroll_terms
 from scenegen_jax.model.network import (
     SceneGenNet,
     group_norm,
     lstm_gates,
     lstm_gates_reference,
 )
-from scenegen_jax.train.data import batch_indices, gather_batch
+from scenegen_jax.train.data import batch_indices
 from scenegen_jax.train.step import (
-    Batch,
-    check_batch,
-    crop_batch,
     init_state,
     loss_fn,
     make_optimizer,
     make_train_step,
     train_step,
-)
-from scenegen_jax.train.unroll import (
-    unroll_terms,
 )
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -252,7 +248,7 @@ def _params(workdir):
 
 
 def test_load_trained_picks_a_saved_step(tmp_path):
-    from scenegen_jax.train.checkpoint import Checkpointer
+    from scenegen_jax.checkpoint import Checkpointer
     from scenegen_jax.train.loop import load_trained, save_or_check_config
 
     workdir = str(tmp_path / "wd")
@@ -332,8 +328,9 @@ def test_sharded_step_equals_single_device(tiny_train_cache):
 import jax, numpy as np
 from scenegen_jax.config import get_config
 from scenegen_jax.data.cache import load_cache
-from scenegen_jax.train.data import gather_batch, to_device
-from scenegen_jax.train.step import init_state, make_mesh, make_train_step
+from scenegen_jax.backend import make_mesh
+from scenegen_jax.likelihood.batch import gather_batch, to_device
+from scenegen_jax.train.step import init_state, make_train_step
 from jax.sharding import NamedSharding, PartitionSpec as P
 assert jax.device_count() == 8, jax.devices()
 cfg = get_config("tiny").replace(max_actors=15, bptt_window=8, batch_size=8, hidden=8, gn_groups=2)

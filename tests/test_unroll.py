@@ -7,20 +7,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from reference_unroll import reference_step_terms
 from small import CFG, random_params, two_small_scenes
 
-from scenegen_jax.train.data import gather_batch
-from scenegen_jax.train.step import (
-    crop_batch,
-    loss_fn,
-    nll_metrics,
-)
-from scenegen_jax.train.unroll import (
+from scenegen_jax.likelihood.batch import crop_batch, gather_batch
+from scenegen_jax.likelihood.terms import nll_metrics
+from scenegen_jax.likelihood.unroll import (
     num_windows,
-    reference_step_terms,
     unroll_terms,
     unroll_terms_and_grads,
 )
+from scenegen_jax.train.step import loss_fn
 
 
 @pytest.fixture(scope="module")
@@ -40,11 +37,12 @@ def test_fast_unroll_equals_plain_reference(tiny_train_cache, small_scenes, chun
                                             step_loop, monkeypatch):
     """Backbone chunks of the whole window (default here), 1 step, and 3 steps (uneven), all
     unrolled as on CPU; and the steps as the compiled loop of accelerators."""
-    import scenegen_jax.train.unroll as unroll
+    import scenegen_jax.backend as backend
+    import scenegen_jax.likelihood.unroll as unroll
 
     if chunk_bytes is not None:
         monkeypatch.setattr(unroll, "HEAD_CHUNK_BYTES", chunk_bytes)
-    monkeypatch.setattr(unroll, "compiled_step_loop", lambda: step_loop)
+    monkeypatch.setattr(backend, "compiled_step_loop", lambda: step_loop)
     cfg = CFG.replace(bptt_window=16)  # one window: the reference has no truncation either
     params = random_params(cfg, jax.random.key(1))
     maps, scene = crop_batch(_batch(tiny_train_cache, small_scenes), jnp.array([0.0, 1.0]), cfg)
@@ -77,10 +75,11 @@ def test_remat_gives_the_same_loss_and_gradients(tiny_train_cache, small_scenes,
     """Recomputing the backbone and heads in the backward pass (chunks of 3 steps unrolled,
     or one step per iteration of the compiled loop; windows of 8 with the state carried
     between them) changes neither the loss nor its gradients."""
-    import scenegen_jax.train.unroll as unroll
+    import scenegen_jax.backend as backend
+    import scenegen_jax.likelihood.unroll as unroll
 
     monkeypatch.setattr(unroll, "HEAD_CHUNK_BYTES", 3 * 2 * 32 * 32 * 8 * 4)
-    monkeypatch.setattr(unroll, "compiled_step_loop", lambda: step_loop)
+    monkeypatch.setattr(backend, "compiled_step_loop", lambda: step_loop)
     maps, scene = crop_batch(_batch(tiny_train_cache, small_scenes), jnp.array([0.0, 1.0]), CFG)
     params = random_params(CFG, jax.random.key(2))
 
@@ -103,7 +102,7 @@ def test_window_by_window_gradient_equals_autodiff(tiny_train_cache, small_scene
     """The train step's gradient, taken one window at a time (windows of 5, four per scene;
     windows and steps in Python loops as on CPU, or in the `lax.scan`s of accelerators),
     equals jax.grad of the mean scene NLL through the whole unroll (Python loops)."""
-    import scenegen_jax.train.unroll as unroll
+    import scenegen_jax.backend as backend
 
     cfg = CFG.replace(bptt_window=5, remat=remat)
     assert num_windows(cfg) == 4
@@ -111,8 +110,8 @@ def test_window_by_window_gradient_equals_autodiff(tiny_train_cache, small_scene
     params = random_params(cfg, jax.random.key(4))
     (loss, stats), grads = jax.jit(jax.value_and_grad(loss_fn, has_aux=True), static_argnums=1)(
         params, cfg, maps, scene)
-    monkeypatch.setattr(unroll, "compiled_window_loop", lambda: compiled_loop)
-    monkeypatch.setattr(unroll, "compiled_step_loop", lambda: compiled_loop)
+    monkeypatch.setattr(backend, "compiled_window_loop", lambda: compiled_loop)
+    monkeypatch.setattr(backend, "compiled_step_loop", lambda: compiled_loop)
     unrolled, windowed = jax.jit(
         lambda p: unroll_terms_and_grads(p, cfg, maps, scene, 1.0 / 2))(params)
     scene_nll, stats_w = nll_metrics(*unrolled)

@@ -14,8 +14,8 @@ from scenegen_jax.data import womd_json as W
 from scenegen_jax.data.prepare import prepare
 from scenegen_jax.data.sources import source_spec
 from scenegen_jax.data.surface import DEFAULT_HALF_WIDTH_M, Centerline, outline_lanes
-from scenegen_jax.data.vector_map import ROAD_EDGE, RoadLine
 from scenegen_jax.scene import BICYCLIST, PEDESTRIAN, VEHICLE
+from scenegen_jax.vector_map import ROAD_EDGE, RoadLine
 
 # ---------------------------------------------------------------- synthetic layouts
 

@@ -20,9 +20,9 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from scenegen_jax.data.frame import Frame
-from scenegen_jax.data.vector_map import LANE_TYPES, Lane, VectorMap
-from scenegen_jax.scene import BICYCLIST, PEDESTRIAN, VEHICLE
+from scenegen_jax.frame import Frame
+from scenegen_jax.scene import BICYCLIST, PEDESTRIAN, VEHICLE, wrap_angle
+from scenegen_jax.vector_map import LANE_TYPES, Lane, VectorMap
 
 log = logging.getLogger(__name__)
 
@@ -485,7 +485,7 @@ def read_log(log_dir: str, drops: DropCounter, crop_radius_m: float = 80.0) -> I
             cls=cls[rows],
             position=pos_ego[rows, :2],
             size=size[rows],
-            heading=np.mod(yaw[rows], 2 * np.pi),
+            heading=wrap_angle(yaw[rows]),
             velocity=vel_ego[rows],
             track_id=track[rows],
             ego_velocity=ego_v[p],

@@ -25,9 +25,9 @@ from collections.abc import Iterable
 import numpy as np
 
 from scenegen_jax.config import Config
-from scenegen_jax.data.frame import Frame
+from scenegen_jax.frame import Frame
 from scenegen_jax.raster.map import ALL_MAP_CHANNELS, rasterize_map
-from scenegen_jax.scene import CLASS_NAMES, Actors, in_region
+from scenegen_jax.scene import CLASS_NAMES, Actors, in_region, make_ego
 
 log = logging.getLogger(__name__)
 CACHE_VERSION = 1
@@ -258,6 +258,11 @@ class Cache:
     ego_size: np.ndarray  # [S, 2] m
     city_from_ego: np.ndarray  # [S, 3, 3]
 
+    def ego(self, index):
+        """The ego of scene(s) `index` (an int or an index array): `scene.make_ego` with the
+        cached size and velocity."""
+        return make_ego(self.ego_size[index], self.ego_velocity[index])
+
     def __len__(self) -> int:
         return len(self.meta["scene_ids"])
 
@@ -365,12 +370,4 @@ def cached_scene(cache: Cache, index: int, cfg: Config) -> tuple[np.ndarray, Act
     if not 0 <= index < len(cache):
         raise IndexError(f"{cache.path}: scene index {index} out of range [0, {len(cache)})")
     actors = Actors(**{k: getattr(cache.actors, k)[index] for k in ACTOR_FIELDS})
-    ego = Actors(
-        cls=np.int32(0),
-        position=np.zeros(2, np.float32),
-        size=cache.ego_size[index],
-        heading=np.float32(0.0),
-        velocity=cache.ego_velocity[index],
-        valid=np.bool_(True),
-    )
-    return np.asarray(cache.maps[index]), actors, ego
+    return np.asarray(cache.maps[index]), actors, cache.ego(index)

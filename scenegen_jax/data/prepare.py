@@ -12,11 +12,11 @@ import collections
 import concurrent.futures
 import logging
 import multiprocessing
-import os
 import pickle
 import time
 from typing import NamedTuple
 
+from scenegen_jax.backend import cpu_cores
 from scenegen_jax.config import Config
 from scenegen_jax.data.cache import CacheWriter, EncodedFrame, Summary, encode_frame
 from scenegen_jax.data.sources import read_file, source_files
@@ -44,10 +44,6 @@ def encode_file(spec: dict, path: str, cfg: Config, strict: bool = False) -> Fil
     return FileResult(path, [encode_frame(f, cfg) for f in frames], drops, None)
 
 
-def default_workers() -> int:
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-
-
 def prepare(
     spec: dict,
     out_dir: str,
@@ -69,7 +65,7 @@ def prepare(
       (summary, scenes per second of wall time).
     """
     files = source_files(spec)
-    workers = workers or default_workers()
+    workers = workers or cpu_cores()
     start = time.perf_counter()
     writer = CacheWriter(out_dir, cfg, spec)
     drops: collections.Counter = collections.Counter()

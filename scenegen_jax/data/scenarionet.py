@@ -38,7 +38,7 @@ directory. It re-exports the public names of its siblings, which import one anot
   scenarionet_schema   file names, key and type tables, checked field readers
   scenarionet_map      map_features -> VectorMap (`map_from_features`)
   scenarionet_tracks   tracks, the SDC, time stamps, steps, `velocity_mismatch`
-  scenarionet_export   Frame -> scenario dicts and files; `frame_differences`
+  scenarionet_export   Frame -> scenario dicts and files
   scenarionet          (this module) scenario -> Frames, and the readers of files
 """
 
@@ -54,7 +54,6 @@ import numpy as np
 
 from scenegen_jax.data.safe_pickle import load_pickle
 from scenegen_jax.data.scenarionet_export import (
-    frame_differences,
     map_features_from_vector_map,
     scenario_file_name,
     scenario_from_frame,
@@ -122,7 +121,6 @@ __all__ = [
     "TYPE_FROM_CLASS",
     "VELOCITY_MISMATCH_REL_ERR",
     "ImportedFrame",
-    "frame_differences",
     "frames_from_scenario",
     "map_features_from_vector_map",
     "map_from_features",

@@ -13,7 +13,7 @@ import collections
 import os
 from collections.abc import Iterator
 
-from scenegen_jax.data.frame import Frame
+from scenegen_jax.frame import Frame
 
 SOURCES = ("av2", "scenarionet", "womd_json")
 DEFAULT_STRIDE = 10  # steps: one frame per second of a 10 Hz log

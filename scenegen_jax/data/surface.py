@@ -20,7 +20,7 @@ from collections.abc import Sequence
 import numpy as np
 import shapely
 
-from scenegen_jax.data.vector_map import ROAD_EDGE, Lane, RoadLine
+from scenegen_jax.vector_map import ROAD_EDGE, Lane, RoadLine
 
 DEFAULT_HALF_WIDTH_M = 1.8
 MIN_HALF_WIDTH_M = 1.0

@@ -37,10 +37,10 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from scenegen_jax.data.frame import Frame
 from scenegen_jax.data.surface import MAX_HALF_WIDTH_M, Centerline, normals, outline_lanes
-from scenegen_jax.data.vector_map import ROAD_EDGE, RoadLine, VectorMap, rotation_matrix
-from scenegen_jax.scene import BICYCLIST, PEDESTRIAN, VEHICLE
+from scenegen_jax.frame import Frame
+from scenegen_jax.scene import BICYCLIST, PEDESTRIAN, VEHICLE, wrap_angle
+from scenegen_jax.vector_map import ROAD_EDGE, RoadLine, VectorMap, rotation_matrix
 
 CLASS_FROM_TYPE = {"vehicle": VEHICLE, "pedestrian": PEDESTRIAN, "cyclist": BICYCLIST}
 STEP_S = 0.1  # WOMD's 10 Hz
@@ -372,7 +372,7 @@ def frames_from_scenario(
                 cls=np.array([CLASS_FROM_TYPE[tracks.type[r]] for r in rows], np.int32),
                 position=(tracks.position[rows, t] - (x0, y0)) @ ego_from_world.T,
                 size=tracks.size[rows].astype(np.float64),
-                heading=np.mod(tracks.heading[rows, t] - h0, 2 * np.pi),
+                heading=wrap_angle(tracks.heading[rows, t] - h0),
                 velocity=tracks.velocity[rows, t] @ ego_from_world.T,
                 track_id=np.asarray([tracks.ids[r] for r in rows], dtype=str),
                 ego_velocity=ego_from_world @ tracks.velocity[sdc, t],

@@ -23,10 +23,10 @@ from typing import Any
 import numpy as np
 
 from scenegen_jax.config import Config
-from scenegen_jax.data.vector_map import VectorMap
 from scenegen_jax.eval.mmd import scene_arrays
 from scenegen_jax.geometry import box_corners, boxes_overlap  # noqa: F401  (public here too)
-from scenegen_jax.scene import BICYCLIST, VEHICLE, Actors, canonical_order
+from scenegen_jax.scene import BICYCLIST, VEHICLE, Actors, canonical_order, wrap_angle
+from scenegen_jax.vector_map import VectorMap
 
 LANE_CLASS = {"VEHICLE": VEHICLE, "BUS": VEHICLE, "BIKE": BICYCLIST}
 
@@ -157,8 +157,8 @@ class _Placement:
             center,
             size,
             heading,
-            np.array(self.center),
-            np.array(self.size),
+            np.array(self.center).reshape(-1, 2),
+            np.array(self.size).reshape(-1, 2),
             np.array(self.heading),
         )
         if hit.any():
@@ -203,8 +203,7 @@ def pad_actors(cls, position, size, heading, velocity, cfg: Config) -> Actors:
         out[:n] = np.asarray(x, dtype).reshape((n, *shape))
         return out
 
-    h = pad(np.mod(heading, 2 * np.pi), (), np.float32)
-    h[h >= np.float32(2 * np.pi)] = 0.0  # float32 rounding at the wrap
+    h = pad(wrap_angle(np.asarray(heading, np.float32)), (), np.float32)
     actors = Actors(
         cls=pad(cls, (), np.int32),
         position=pad(position, (2,), np.float32),

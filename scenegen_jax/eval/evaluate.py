@@ -18,7 +18,7 @@ from scenegen_jax.eval import baselines
 from scenegen_jax.eval.mmd import mmd_table
 from scenegen_jax.eval.nll import score_cache, summarize_by_source, summarize_scores
 from scenegen_jax.raster.transform import scene_from_cached
-from scenegen_jax.sampling.rollout import sample_scenes
+from scenegen_jax.sampling.batch import sample_scenes
 
 log = logging.getLogger(__name__)
 METHODS = ("Prob. Grammar", "Procedural", "SceneGen")
@@ -37,15 +37,16 @@ def real_scenes(cache: Cache, indices, cfg: Config):
 
 
 def sample_scenegen(params, cfg: Config, maps, scenes, seed: int, batch_size: int = 8):
-    """One SceneGen sample per conditioning scene (numpy Actors each)."""
+    """One SceneGen sample per conditioning scene (numpy Actors each); scene i is scene i of
+    the request (`sampling.scene_key`), whatever the batch size."""
     key = jax.random.key(seed)
     out = []
     for start in tqdm(range(0, len(scenes), batch_size), desc="sample", unit="batch",
                       file=sys.stderr):
         chunk = scenes[start : start + batch_size]
         egos = jax.tree.map(lambda *x: np.stack(x), *[s.ego for s in chunk])
-        sample = sample_scenes(jax.random.fold_in(key, start), params, cfg,
-                               maps[start : start + batch_size], egos)
+        sample = sample_scenes(key, params, cfg, maps[start : start + batch_size], egos,
+                               first=start)
         actors = jax.device_get(sample.actors)
         out.extend(jax.tree.map(lambda x, j=j: x[j, 0], actors) for j in range(len(chunk)))
     return out
@@ -54,7 +55,7 @@ def sample_scenegen(params, cfg: Config, maps, scenes, seed: int, batch_size: in
 def sample_baselines(cfg: Config, cache: Cache, indices, train_cache: Cache, seed: int):
     """{method: [numpy Actors]} from Prob. Grammar and Procedural on the scenes' vector maps.
 
-    `cache` (and `train_cache`) may be a `train.data.CacheUnion`: each scene's map is read
+    `cache` (and `train_cache`) may be a `data.union.CacheUnion`: each scene's map is read
     again from its own cache's source."""
     members = getattr(cache, "members", [cache])
     offsets = np.asarray(getattr(cache, "offsets", [0, len(cache)]))
@@ -85,7 +86,7 @@ def sample_baselines(cfg: Config, cache: Cache, indices, train_cache: Cache, see
 def evaluate(params, cfg: Config, cache: Cache, train_cache: Cache, num_scenes: int, seed: int):
     """NLL of every cached scene (overall and per source) and MMD rows for every method on
     `num_scenes` scenes spread evenly over all of them. `cache` may be a
-    `train.data.CacheUnion` of several caches (sources)."""
+    `data.union.CacheUnion` of several caches (sources)."""
     scores = score_cache(params, cache, cfg)
     nll = summarize_scores(scores)
     nll_by_source = summarize_by_source(scores, cache)

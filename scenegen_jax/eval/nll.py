@@ -12,15 +12,18 @@ from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 from tqdm import tqdm
 
-from scenegen_jax.concurrency import concurrent_map, default_workers
+from scenegen_jax.backend import (
+    concurrent_map,
+    default_workers,
+    make_mesh,
+    scoring_compiler_options,
+)
 from scenegen_jax.config import Config
 from scenegen_jax.data.cache import Cache
 from scenegen_jax.distributions import TERMS
-from scenegen_jax.model.network import scoring_compiler_options
-from scenegen_jax.scene import CLASS_NAMES, pixel_centers
-from scenegen_jax.train.data import gather_batch, to_device
-from scenegen_jax.train.step import Batch, crop_batch, make_mesh
-from scenegen_jax.train.unroll import unroll_terms
+from scenegen_jax.likelihood.batch import Batch, crop_batch, gather_batch, to_device
+from scenegen_jax.likelihood.unroll import unroll_terms
+from scenegen_jax.scene import CLASS_NAMES
 
 
 def score_batch(params, batch: Batch, cfg: Config) -> dict:
@@ -49,7 +52,7 @@ def score_cache(params, cache: Cache, cfg: Config, batch_size: int = 8, progress
     """Scores every scene of a cache.
 
     Each batch of `batch_size` scenes runs as `workers` concurrent calls on equal parts of
-    it (`concurrency.concurrent_map`; default one per core on CPU, 1 on accelerators); every
+    it (`backend.concurrent_map`; default one per core on CPU, 1 on accelerators); every
     scene's scores are its own, whatever the batching.
 
     Returns:
@@ -59,7 +62,7 @@ def score_cache(params, cache: Cache, cfg: Config, batch_size: int = 8, progress
     mesh = make_mesh()
     workers = default_workers() if workers is None else workers
     per_call = max(batch_size // (workers * mesh.size), 1) * mesh.size
-    fn = _jitted_scorer(cfg, mesh)
+    fn = _jitted_scorer(cfg.inference(), mesh)  # one program per model, not per run config
     params = jax.device_put(params, NamedSharding(mesh, P()))
     n = len(cache)
 
@@ -133,21 +136,3 @@ def worst_scenes(scores: dict, k: int) -> list[tuple[int, int, float, dict]]:
         terms = {k_: float(scores[k_][i, step]) for k_ in TERMS}
         out.append((int(i), step, float(per_actor[i]), terms))
     return out
-
-
-def off_road_point(drivable: np.ndarray, cfg: Config) -> np.ndarray:
-    """(x, y) m of the bin centre farthest from the drivable area (inside a city block).
-
-    Args:
-      drivable: bool [H, W] drivable area on the model's grid (`scenegen_jax.scene` layout).
-    Returns:
-      float32 [2]; raises if the whole region is drivable.
-    """
-    from scipy import ndimage
-
-    drivable = np.asarray(drivable, bool)
-    if drivable.all():
-        raise ValueError("the whole region is drivable: no off-road point")
-    distance = ndimage.distance_transform_edt(~drivable)
-    row, col = np.unravel_index(np.argmax(distance), distance.shape)
-    return pixel_centers(cfg)[row, col]

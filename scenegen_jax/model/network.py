@@ -2,7 +2,7 @@
 five-layer conv backbone, a class MLP, per-class location CNNs and per-class attribute MLPs.
 
 The network is split into methods so the teacher-forced unroll can be fast (see
-`scenegen_jax.train.unroll`): the first ConvLSTM layer's input convolution is linear in its
+`scenegen_jax.likelihood.unroll`): the first ConvLSTM layer's input convolution is linear in its
 input, so conv(map ++ actors ++ h1) = conv_map(map) + conv_actors(actors) + conv_rec(h1).
 The map part is computed once per scene. The backbone and heads do not feed back into the
 recurrence, so the unroll can run them on chunks of steps.
@@ -29,25 +29,6 @@ def attribute_sizes(k: int) -> tuple[int, int, int]:
     from scenegen_jax.distributions import BOX_PARAMS, HEADING_PARAMS, VELOCITY_PARAMS
 
     return BOX_PARAMS(k), HEADING_PARAMS(k), VELOCITY_PARAMS(k)
-
-
-def scoring_compiler_options() -> dict | None:
-    """XLA compiler options for the scorer (no gradients).
-
-    On XLA:CPU its convolutions then run through XLA's Eigen path instead of YNNPACK: the
-    backbone's 3 x 3, 32 -> 32 convolution takes 1.7 ms there at 128 x 128 against 3.0 ms,
-    the 5 x 5 ones the same; YNNPACK keeps what it runs by default besides convolutions (dots
-    and reductions). The train step keeps YNNPACK's convolutions, whose weight gradients are
-    2-4x faster than Eigen's, and so does the sampler, which ran 7 % slower with Eigen's
-    (bench/README.md). None (XLA's defaults) on other backends.
-    """
-    if jax.default_backend() != "cpu":
-        return None
-    return {
-        "xla_cpu_experimental_ynn_fusion_type": (
-            "LIBRARY_FUSION_TYPE_INDIVIDUAL_DOT,LIBRARY_FUSION_TYPE_REDUCE"
-        ),
-    }
 
 
 def conv(x, w, b=None):

@@ -13,8 +13,8 @@ import numpy as np
 import shapely
 
 from scenegen_jax.config import ALL_LAYER_GROUPS, LAYER_GROUPS, Config
-from scenegen_jax.data.vector_map import VectorMap, is_crossable
 from scenegen_jax.scene import pixel_centers
+from scenegen_jax.vector_map import VectorMap, is_crossable
 
 ALL_MAP_CHANNELS: tuple[str, ...] = tuple(c for g in ALL_LAYER_GROUPS for c in LAYER_GROUPS[g])
 ORIENTATION_CHANNELS = ("lane_orientation_cos", "lane_orientation_sin")

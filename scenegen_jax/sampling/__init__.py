@@ -1,33 +1,44 @@
 """Sampling new scenes: a jitted autoregressive rollout with best-of-M proposals, ordering
 masks and collision rejection, vmapped across scenes and keys.
 
-The per-scene function is `scenegen_jax.sampling.rollout.rollout` (not re-exported here, so
-that `scenegen_jax.sampling.rollout` stays the module); batches go through `sample_scenes` /
-`sample_split` / `sample_batch`.
+Layers, bottom up: `model` (what the sampler needs from a network), `attributes` (best-of-M
+box, heading and velocity), `rollout` (one scene in one traced function; not re-exported, so
+that `scenegen_jax.sampling.rollout` stays the module), `batch` (keys per scene, batched and
+concurrent calls), `export` (records, frames and files of sampled scenes).
 """
 
-from scenegen_jax.sampling.export import actor_records, actors_from_records, frame_from_sample
-from scenegen_jax.sampling.geometry import box_axes, boxes_overlap, collides
+from scenegen_jax.sampling.attributes import (
+    MAX_SIZE_M,
+    MAX_SPEED_MPS,
+    MIN_SIZE_M,
+    sample_attributes,
+)
+from scenegen_jax.sampling.batch import (
+    batch_inputs,
+    sample_batch,
+    sample_scenes,
+    sample_split,
+    scene_key,
+    scene_keys,
+)
+from scenegen_jax.sampling.export import (
+    actor_records,
+    actors_from_records,
+    frame_from_sample,
+    read_given,
+)
+from scenegen_jax.sampling.geometry import collides
+from scenegen_jax.sampling.model import Model, NetworkModel
 from scenegen_jax.sampling.rollout import (
     COLLISION,
     FULL,
     HEATMAP_STEPS,
-    MAX_SIZE_M,
-    MAX_SPEED_MPS,
-    MIN_SIZE_M,
     NO_BIN,
     STOP_REASONS,
     STOP_TOKEN,
-    Model,
-    NetworkModel,
     Sample,
+    SamplerOptions,
     SamplerState,
-    batch_inputs,
-    sample_attributes,
-    sample_batch,
-    sample_scenes,
-    sample_split,
-    scene_keys,
 )
 
 __all__ = [
@@ -43,17 +54,18 @@ __all__ = [
     "Model",
     "NetworkModel",
     "Sample",
+    "SamplerOptions",
     "SamplerState",
     "actor_records",
     "actors_from_records",
     "batch_inputs",
-    "box_axes",
-    "boxes_overlap",
     "collides",
     "frame_from_sample",
+    "read_given",
     "sample_attributes",
     "sample_batch",
     "sample_scenes",
     "sample_split",
+    "scene_key",
     "scene_keys",
 ]

@@ -10,6 +10,7 @@ direction as heading; on input their width, length and heading may be omitted.
 
 from __future__ import annotations
 
+import json
 import math
 import numbers
 from collections.abc import Mapping, Sequence
@@ -18,10 +19,18 @@ from typing import Any
 import numpy as np
 
 from scenegen_jax.config import Config
-from scenegen_jax.data.frame import Frame
-from scenegen_jax.data.vector_map import VectorMap
+from scenegen_jax.frame import Frame
 from scenegen_jax.geometry import boxes_overlap
-from scenegen_jax.scene import CLASS_NAMES, PEDESTRIAN, Actors, Scene, canonical_order, make_ego
+from scenegen_jax.scene import (
+    CLASS_NAMES,
+    PEDESTRIAN,
+    Actors,
+    Scene,
+    canonical_order,
+    make_ego,
+    wrap_angle,
+)
+from scenegen_jax.vector_map import VectorMap
 
 RECORD_FIELDS = ("x", "y", "width", "length", "heading", "vx", "vy")
 
@@ -99,7 +108,7 @@ def actors_from_records(
         cls[i] = c
         position[i] = (values["x"], values["y"])
         size[i] = (values["width"], values["length"])
-        heading[i] = values["heading"] % (2 * math.pi)
+        heading[i] = wrap_angle(values["heading"])
         velocity[i] = (values["vx"], values["vy"])
         valid[i] = True
     actors = Actors(cls=cls, position=position, size=size, heading=heading, velocity=velocity,
@@ -108,7 +117,7 @@ def actors_from_records(
         sizes = np.asarray(cfg.ego_size_m if ego_sizes is None else ego_sizes, np.float64)
         check_overlaps(actors, sizes.reshape(-1, 2), where)
     actors = _numpy(canonical_order(actors, cfg))
-    Scene(actors=actors, ego=make_ego(cfg)).validate(cfg, where)
+    Scene(actors=actors, ego=make_ego(cfg.ego_size_m)).validate(cfg, where)
     return actors
 
 
@@ -198,3 +207,34 @@ def frame_from_sample(
 def _numpy(actors: Actors) -> Actors:
     return Actors(*(np.asarray(getattr(actors, f)) for f in
                     ("cls", "position", "size", "heading", "velocity", "valid")))
+
+
+def read_given(path: str, cfg: Config, scene_ego_sizes, allow_overlap: bool = False) -> list:
+    """Given actors (numpy Actors [N]) of each non-blank line of a `sample --given` file.
+
+    Line j of L lines conditions scenes j, j + L, ...; `scene_ego_sizes` [num scenes, 2]
+    (width, length) m are the egos of the scenes to sample, so each line's boxes are checked
+    against the egos it meets (and each other) unless `allow_overlap`. Errors name the file,
+    the line and the field.
+    """
+    rows = []
+    with open(path) as f:
+        for line_no, line in enumerate(f, 1):
+            if not line.strip():
+                continue
+            where = f"{path}:{line_no}"
+            try:
+                row = json.loads(line)
+            except json.JSONDecodeError as e:
+                raise ValueError(f"{where}: not JSON ({e})") from e
+            if not isinstance(row, dict) or "actors" not in row:
+                raise ValueError(f'{where}: actors: missing (expected {{"actors": [...]}})')
+            rows.append((where, row["actors"]))
+    if not rows:
+        raise ValueError(f"{path}: no given scenes")
+    sizes = np.asarray(scene_ego_sizes, np.float64).reshape(-1, 2)
+    return [
+        actors_from_records(records, cfg, where, np.unique(sizes[j :: len(rows)], axis=0),
+                            allow_overlap)
+        for j, (where, records) in enumerate(rows)
+    ]

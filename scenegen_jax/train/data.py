@@ -18,19 +18,13 @@ uninterrupted one would. With one cache this is the plain epoch-permutation orde
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import math
-import os
 from collections.abc import Sequence
 
-import jax
 import numpy as np
 
-from scenegen_jax.config import Config
-from scenegen_jax.data.cache import ACTOR_FIELDS, Cache, check_compatible, load_cache
-from scenegen_jax.scene import Actors
-from scenegen_jax.train.step import Batch
+from scenegen_jax.data.union import CacheUnion
 
 MIN_EPOCH = 4096  # positions per virtual epoch at least (share rounding below 1/4096)
 
@@ -130,173 +124,8 @@ def batch_indices(num_scenes: int, batch_size: int, seed: int, step: int) -> np.
     return draw_indices([num_scenes], None, batch_size, seed, step)[1]
 
 
-# ---------------------------------------------------------------------------- several caches
-
-
-class StackedMaps:
-    """The memory-mapped `maps.npy` of several caches read as one [S, C, C, channels] array:
-    indexing reads only the scenes asked for."""
-
-    def __init__(self, maps: Sequence[np.ndarray], offsets: np.ndarray):
-        self._maps, self._offsets = list(maps), offsets
-        self.shape = (int(offsets[-1]), *maps[0].shape[1:])
-        self.dtype = maps[0].dtype
-
-    def __len__(self) -> int:
-        return self.shape[0]
-
-    def __getitem__(self, index):
-        if isinstance(index, (int, np.integer)):
-            i = int(index) + (self.shape[0] if index < 0 else 0)
-            if not 0 <= i < self.shape[0]:
-                raise IndexError(f"scene {index} out of range [0, {self.shape[0]})")
-            c = int(np.searchsorted(self._offsets, i, side="right")) - 1
-            return self._maps[c][i - self._offsets[c]]
-        rows = np.arange(self.shape[0])[index]
-        return np.stack([self[int(i)] for i in np.atleast_1d(rows)])
-
-
-def source_labels(caches: Sequence[Cache]) -> list[str]:
-    """A name per cache: its source kind and folder name (`av2:train`), or its whole path
-    where two would share a name."""
-    def kind(c):
-        return (c.meta.get("source") or {}).get("kind") or "unknown"
-
-    short = [f"{kind(c)}:{os.path.basename(os.path.normpath(c.path))}" for c in caches]
-    return [
-        s if short.count(s) == 1 else f"{kind(c)}:{c.path}"
-        for s, c in zip(short, caches, strict=True)
-    ]
-
-
-def _pad_slots(x: np.ndarray, slots: int) -> np.ndarray:
-    if x.shape[1] == slots:
-        return x
-    pad = [(0, 0), (0, slots - x.shape[1])] + [(0, 0)] * (x.ndim - 2)
-    return np.pad(x, pad)  # zeros: invalid, class 0
-
-
-@dataclasses.dataclass
-class CacheUnion:
-    """Several caches read as one: the fields of a `Cache` over all their scenes (cache 0's
-    scenes first), so `gather_batch`, `score_cache` and `cached_scene` take it as they take
-    a cache. Maps stay memory-mapped per cache; actor arrays are padded to the largest slot
-    count and concatenated (the members' actors are views into them). One cache is its own
-    union, with its arrays as they are."""
-
-    members: list[Cache]
-    offsets: np.ndarray  # [N + 1] first scene of each member, then the total
-    labels: list[str]  # `source_labels`
-    path: str
-    meta: dict
-    maps: np.ndarray | StackedMaps
-    actors: Actors
-    ego_velocity: np.ndarray
-    ego_size: np.ndarray
-    city_from_ego: np.ndarray
-
-    @classmethod
-    def of(cls, caches: Sequence[Cache]) -> CacheUnion:
-        caches = list(caches)
-        if not caches:
-            raise ValueError("no caches given")
-        sizes = [len(c) for c in caches]
-        offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-        labels = source_labels(caches)
-        if len(caches) == 1:
-            c = caches[0]
-            return cls(caches, offsets, labels, c.path, c.meta, c.maps, c.actors,
-                       c.ego_velocity, c.ego_size, c.city_from_ego)
-        slots = max(c.actors.cls.shape[1] for c in caches)
-        actors = Actors(**{
-            k: np.concatenate([_pad_slots(getattr(c.actors, k), slots) for c in caches])
-            for k in ACTOR_FIELDS
-        })
-        per_scene = {k: np.concatenate([getattr(c, k) for c in caches])
-                     for k in ("ego_velocity", "ego_size", "city_from_ego")}
-        members = []
-        for c, a, b in zip(caches, offsets[:-1], offsets[1:], strict=True):
-            members.append(dataclasses.replace(
-                c,
-                actors=Actors(**{k: getattr(actors, k)[a:b] for k in ACTOR_FIELDS}),
-                **{k: v[a:b] for k, v in per_scene.items()},
-            ))
-        first = caches[0].meta
-        meta = {
-            **{k: first[k] for k in ("version", "grid_size", "m_per_px", "canvas_size",
-                                     "channels") if k in first},
-            "slots": slots,
-            "scene_ids": [sid for c in caches for sid in c.scene_ids],
-            "members": [c.path for c in caches],
-            "source": {},
-        }
-        return cls(members, offsets, labels, " + ".join(c.path for c in caches), meta,
-                   StackedMaps([c.maps for c in caches], offsets), actors, **per_scene)
-
-    def __len__(self) -> int:
-        return int(self.offsets[-1])
-
-    @property
-    def sizes(self) -> list[int]:
-        return [len(c) for c in self.members]
-
-    @property
-    def scene_ids(self) -> list[str]:
-        return self.meta["scene_ids"]
-
-    def member_of(self, indices) -> np.ndarray:
-        """Member (cache) number of each union scene index."""
-        return np.searchsorted(self.offsets, np.asarray(indices), side="right") - 1
-
-    def scene_name(self, index: int) -> str:
-        """The scene's id, after its cache's path when there are several caches."""
-        sid = self.scene_ids[index]
-        if len(self.members) == 1:
-            return sid
-        return f"{self.members[int(self.member_of(index))].path}: {sid}"
-
-    def check_config(self, cfg: Config) -> None:
-        """Raises naming the cache and field if a member's grid or channels differ from cfg."""
-        check_compatible(self.members, cfg)
-
-
-def load_union(paths: str | Sequence[str], cfg: Config | None = None) -> CacheUnion:
-    """Opens one or several cache directories as a `CacheUnion` (checked against `cfg` with
-    `check_compatible` when given)."""
-    paths = [paths] if isinstance(paths, str) else list(paths)
-    caches = [load_cache(p) for p in paths]
-    if cfg is not None:
-        check_compatible(caches, cfg)
-    return CacheUnion.of(caches)
-
-
 def union_indices(union: CacheUnion, shares: np.ndarray | None, batch_size: int, seed: int,
                   step: int) -> np.ndarray:
     """Union scene indices of training batch `step` (`draw_indices` over its members)."""
     which, local = draw_indices(union.sizes, shares, batch_size, seed, step)
     return union.offsets[which] + local
-
-
-# ---------------------------------------------------------------------------- batches
-
-
-def gather_batch(cache: Cache | CacheUnion, indices: np.ndarray, cfg: Config) -> Batch:
-    """Host arrays of the scenes `indices` (canvas kept in float16)."""
-    indices = np.asarray(indices)
-    actors = Actors(**{k: np.asarray(getattr(cache.actors, k)[indices]) for k in ACTOR_FIELDS})
-    n = len(indices)
-    ego = Actors(
-        cls=np.zeros(n, np.int32),
-        position=np.zeros((n, 2), np.float32),
-        size=cache.ego_size[indices],
-        heading=np.zeros(n, np.float32),
-        velocity=cache.ego_velocity[indices],
-        valid=np.ones(n, bool),
-    )
-    canvas = np.stack([np.asarray(cache.maps[i]) for i in indices])
-    return Batch(canvas=canvas, actors=actors, ego=ego)
-
-
-def to_device(batch: Batch, sharding=None) -> Batch:
-    """Puts a host batch on device(s), sharded along the batch axis if `sharding` is given."""
-    return jax.tree.map(lambda x: jax.device_put(x, sharding), batch)

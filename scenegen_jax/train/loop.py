@@ -16,30 +16,24 @@ from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 from tqdm import tqdm
 
+from scenegen_jax.backend import make_mesh
+from scenegen_jax.checkpoint import Checkpointer
 from scenegen_jax.config import Config
+from scenegen_jax.data.union import CacheUnion, load_union
 from scenegen_jax.distributions import TERMS
+from scenegen_jax.likelihood.batch import check_batch, gather_batch, to_device
+from scenegen_jax.likelihood.terms import VEHICLE_TERMS
 from scenegen_jax.scene import CLASS_NAMES
-from scenegen_jax.train.checkpoint import Checkpointer
-from scenegen_jax.train.data import (
-    CacheUnion,
-    gather_batch,
-    load_union,
-    resolve_weights,
-    to_device,
-    union_indices,
-)
+from scenegen_jax.train.data import resolve_weights, union_indices
 from scenegen_jax.train.step import (
-    VEHICLE_TERMS,
     TrainState,
-    check_batch,
     compile_train_step,
     init_state,
-    make_mesh,
     make_optimizer,
 )
+from scenegen_jax.workdir import CHECKPOINTS, CONFIG_FILE, load_params, load_workdir_config
 
 log = logging.getLogger(__name__)
-CONFIG_FILE = "config.json"
 DATA_FILE = "data.json"
 
 
@@ -126,15 +120,6 @@ def drop_metrics_after(path: str, step: int) -> None:
         os.replace(path + ".tmp", path)
 
 
-def load_workdir_config(workdir: str) -> Config:
-    """The config a workdir was trained with."""
-    path = os.path.join(workdir, CONFIG_FILE)
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"{path}: not a training workdir (no {CONFIG_FILE})")
-    with open(path) as f:
-        return Config.from_json(f.read(), path)
-
-
 def summarize(stats: dict) -> dict:
     """Host-side metrics from summed stats: loss, NLL per scene by term, per actor by class."""
     scenes = max(float(stats["scenes"]), 1.0)
@@ -181,13 +166,13 @@ def train(
     mesh = make_mesh()
     step_fn = None  # compiled for the first batch's shapes (every batch has the same)
     data_sharding = NamedSharding(mesh, P("data"))
-    ckpt = Checkpointer(os.path.join(workdir, "checkpoints"), save_every, keep, heal=True)
+    ckpt = Checkpointer(os.path.join(workdir, CHECKPOINTS), save_every, keep, heal=True)
     state = init_state(cfg)
     restored = ckpt.restore_latest(state)
     if restored is not None:
         state = restored
     elif init_from is not None:
-        params = warm_start(state.params, load_trained(init_from)[1].params, init_from)
+        params = warm_start(state.params, load_params(init_from)[1], init_from)
         state = state._replace(params=params, opt_state=make_optimizer(cfg).init(params))
         log.info("starting from the parameters of %s", init_from)
     state = jax.device_put(state, NamedSharding(mesh, P()))
@@ -271,11 +256,13 @@ def load_trained(workdir: str, step: int | None = None) -> tuple[Config, TrainSt
     """(config, train state) of a training workdir: the latest readable checkpoint, or the
     one saved at `step`."""
     cfg = load_workdir_config(workdir)
-    if not os.path.isdir(os.path.join(workdir, "checkpoints")):
-        raise FileNotFoundError(f"{workdir}/checkpoints: no checkpoints (train this workdir first)")
-    ckpt = Checkpointer(os.path.join(workdir, "checkpoints"), every=1)
+    if not os.path.isdir(os.path.join(workdir, CHECKPOINTS)):
+        raise FileNotFoundError(
+            f"{workdir}/{CHECKPOINTS}: no checkpoints (train this workdir first)"
+        )
+    ckpt = Checkpointer(os.path.join(workdir, CHECKPOINTS), every=1)
     state = ckpt.restore_latest(jax.eval_shape(lambda: init_state(cfg)), step)
     ckpt.close()
     if state is None:
-        raise FileNotFoundError(f"{workdir}/checkpoints: no readable checkpoint")
+        raise FileNotFoundError(f"{workdir}/{CHECKPOINTS}: no readable checkpoint")
     return cfg, state

@@ -1,26 +1,21 @@
-"""Loss, optimizer, train state and the jitted (optionally sharded) train step."""
+"""Optimizer, train state and the jitted (optionally sharded) train step."""
 
 from __future__ import annotations
 
-import ctypes
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import optax
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
+from scenegen_jax.backend import release_freed_memory
 from scenegen_jax.config import Config
-from scenegen_jax.distributions import TERMS
+from scenegen_jax.likelihood.batch import Batch, crop_batch
+from scenegen_jax.likelihood.terms import mean_nll
+from scenegen_jax.likelihood.unroll import unroll_terms, unroll_terms_and_grads
 from scenegen_jax.model.network import init_params
-from scenegen_jax.raster.transform import scene_from_cached
-from scenegen_jax.scene import CLASS_NAMES, STOP, VEHICLE, Actors
-from scenegen_jax.train.unroll import unroll_terms, unroll_terms_and_grads
-
-# Terms logged per vehicle (the learning curves of the attributes).
-VEHICLE_TERMS = ("location", "box", "heading", "velocity")
 
 
 class TrainState(NamedTuple):
@@ -36,17 +31,6 @@ class TrainState(NamedTuple):
     params: Any
     opt_state: Any
     key: jnp.ndarray
-
-
-class Batch(NamedTuple):
-    """A batch as read from the cache (before rotation and cropping).
-
-    canvas: float16 [B, S, S, C_all] map canvases; actors: Actors [B, A]; ego: Actors [B].
-    """
-
-    canvas: Any
-    actors: Actors
-    ego: Actors
 
 
 def make_optimizer(cfg: Config) -> optax.GradientTransformation:
@@ -71,37 +55,6 @@ def init_state(cfg: Config, seed: int | None = None) -> TrainState:
         opt_state=make_optimizer(cfg).init(params),
         key=jax.random.key_data(base),
     )
-
-
-def crop_batch(batch: Batch, thetas, cfg: Config):
-    """Rotates each cached scene by thetas [B] rad and crops it: (maps [B,H,W,C], scene)."""
-    maps, scene, _ = jax.vmap(lambda c, a, e, t: scene_from_cached(c, a, e, t, cfg))(
-        batch.canvas, batch.actors, batch.ego, thetas
-    )
-    return maps, scene
-
-
-def nll_metrics(terms: dict, step_valid, step_cls) -> tuple[jnp.ndarray, dict]:
-    """Scene NLLs [B] and summed statistics for logging (sums and counts, not means)."""
-    total = sum(terms[k] for k in TERMS)  # [B, T] log-likelihood per step
-    scene_nll = -jnp.sum(total, axis=1)
-    stats = {f"nll_{k}": -jnp.sum(terms[k]) for k in TERMS}
-    for c, name in enumerate(CLASS_NAMES):
-        m = step_valid & (step_cls == c)
-        stats[f"nll_sum_{name}"] = -jnp.sum(jnp.where(m, total, 0.0))
-        stats[f"count_{name}"] = jnp.sum(m)
-    vehicle = step_valid & (step_cls == VEHICLE)
-    for k in VEHICLE_TERMS:
-        stats[f"nll_{k}_sum_vehicle"] = -jnp.sum(jnp.where(vehicle, terms[k], 0.0))
-    stats["nll_sum_stop"] = -jnp.sum(jnp.where(step_cls == STOP, total, 0.0) * step_valid)
-    stats["scenes"] = jnp.asarray(scene_nll.shape[0])
-    return scene_nll, stats
-
-
-def mean_nll(unrolled) -> tuple[jnp.ndarray, dict]:
-    """The loss, mean scene NLL (nats), and stats from (terms, step_valid, step_cls)."""
-    scene_nll, stats = nll_metrics(*unrolled)
-    return jnp.mean(scene_nll), stats
 
 
 def loss_fn(params, cfg: Config, maps, scene):
@@ -132,12 +85,6 @@ def train_step(state: TrainState, batch: Batch, cfg: Config) -> tuple[TrainState
     return TrainState(state.step + 1, params, opt_state, state.key), stats
 
 
-def make_mesh(devices=None) -> Mesh:
-    """A 1-D mesh with a `data` axis over all local (or given) devices."""
-    devices = np.asarray(jax.devices() if devices is None else devices)
-    return Mesh(devices, ("data",))
-
-
 def make_train_step(cfg: Config, mesh: Mesh | None = None):
     """The jitted train step; with a mesh, the batch is sharded over `data` and the state
     replicated. The state argument is donated."""
@@ -156,40 +103,9 @@ def make_train_step(cfg: Config, mesh: Mesh | None = None):
     )
 
 
-def release_freed_memory() -> None:
-    """Hands freed heap pages back to the OS (glibc's `malloc_trim`; a no-op elsewhere).
-
-    Compiling the train step at grid 128 leaves about 0.6 GiB of the compiler's freed memory
-    resident; returned before the first step, it no longer adds to the step's peak.
-    """
-    try:
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):
-        pass
-
-
 def compile_train_step(cfg: Config, state: TrainState, batch: Batch, mesh: Mesh | None = None):
     """`make_train_step` compiled ahead of time for the shapes of (state, batch), with the
     compiler's freed memory returned to the OS before the first step runs."""
     step = make_train_step(cfg, mesh).lower(state, batch).compile()
     release_freed_memory()
     return step
-
-
-def check_batch(batch: Batch, scene_ids: list[str]) -> None:
-    """Host-side guard: raises ValueError naming the scene and field on NaN/inf input."""
-    fields = {
-        "canvas": batch.canvas,
-        "actors.position": batch.actors.position,
-        "actors.size": batch.actors.size,
-        "actors.heading": batch.actors.heading,
-        "actors.velocity": batch.actors.velocity,
-        "ego.velocity": batch.ego.velocity,
-        "ego.size": batch.ego.size,
-    }
-    for name, value in fields.items():
-        value = np.asarray(value)
-        bad = ~np.isfinite(value.reshape(value.shape[0], -1)).all(axis=1)
-        if bad.any():
-            i = int(np.flatnonzero(bad)[0])
-            raise ValueError(f"scene {scene_ids[i]}: field {name}: NaN or inf in the batch")

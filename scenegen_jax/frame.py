@@ -6,7 +6,7 @@ import dataclasses
 
 import numpy as np
 
-from scenegen_jax.data.vector_map import VectorMap
+from scenegen_jax.vector_map import VectorMap
 
 
 @dataclasses.dataclass

@@ -6,7 +6,7 @@ from window to window with its gradient cut (truncated backprop through time).
 
 On XLA:CPU steps are unrolled at trace time (Python loops): it runs convolution gradients
 inside while loops and conditionals 10-20x slower than at the top level (jax-ml/jax#12868).
-On accelerators a window's steps run as a `lax.scan` (`compiled_step_loop`): a few steps are
+On accelerators a window's steps run as a `lax.scan` (`backend.compiled_step_loop`): a few steps are
 compiled instead of a window's worth. Windows run through `scan_windows`: a Python loop on
 CPU, a `lax.scan` (one window compiled) on accelerators. The train step takes each window's
 gradient right after that window (`unroll_terms_and_grads`), so it holds one window's
@@ -29,7 +29,7 @@ elsewhere `_scanned_steps`, the same mathematics as a loop over the steps):
     instead of stored (`recompute_in_backward`), each one chunk late so that the recomputation
     overlaps the next chunk's recurrence: at the paper's width, grid 128, T 25, the step's
     temporaries drop from 2.1 to 0.9 GiB for 1-7 % more time on 2 CPU cores (bench/README.md).
-`reference_step_terms` is the plain per-step version used to test it.
+`tests/reference_unroll.py` holds the plain per-step version it is tested against.
 """
 
 from __future__ import annotations
@@ -41,9 +41,10 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from scenegen_jax import backend
 from scenegen_jax.config import Config
-from scenegen_jax.distributions import TERMS, HeadOutputs, actor_log_likelihood
-from scenegen_jax.model.network import SceneGenNet, conv, lstm_gates
+from scenegen_jax.distributions import HeadOutputs, actor_log_likelihood
+from scenegen_jax.model.network import SceneGenNet
 from scenegen_jax.raster.actors import draw_actor, empty_actor_raster
 from scenegen_jax.scene import STOP, Actors, Scene, bin_index
 
@@ -146,17 +147,12 @@ def head_terms(net: SceneGenNet, params, heads, targets: Actors, is_stop, cfg: C
     return jax.vmap(ll)(head, targets, is_stop)
 
 
-def compiled_window_loop() -> bool:
-    """Whether `scan_windows` compiles a loop (everywhere but XLA:CPU)."""
-    return jax.default_backend() != "cpu"
-
-
 def scan_windows(body, init, windows: int):
     """`lax.scan(body, init, jnp.arange(windows))`: a compiled loop on accelerators (one window
     compiled, whatever the count); on XLA:CPU, which runs convolutions inside loops many times
     slower (above; a train step at grid 128 went from 3.6 s to minutes as a one-iteration
     loop), and for a single window, a Python loop over the same body."""
-    if compiled_window_loop() and windows > 1:
+    if backend.compiled_window_loop() and windows > 1:
         return jax.lax.scan(body, init, jnp.arange(windows))
     carry, outs = init, []
     for index in range(windows):
@@ -198,7 +194,7 @@ def window_terms(params, map_gates, carry, start, scenes: _Scenes, cfg: Config,
     padding steps). The carry is an input like any other: callers cut its gradient. At a
     static start 0 (a scene's first window) the state is the zero state: its first step skips
     the recurrent convolutions of those zeros (`SceneGenNet.recur`). The steps run unrolled
-    on XLA:CPU and as a compiled loop elsewhere (`compiled_step_loop`)."""
+    on XLA:CPU and as a compiled loop elsewhere (`backend.compiled_step_loop`)."""
     net = SceneGenNet(cfg)
     state, raster = carry
     if isinstance(start, int) and start == 0:
@@ -207,7 +203,7 @@ def window_terms(params, map_gates, carry, start, scenes: _Scenes, cfg: Config,
     win = jax.tree.map(lambda x: jax.lax.dynamic_slice_in_dim(x, start, w, axis=1), scenes.actors)
     targets, is_stop, valid = _step_targets(win, scenes.n_actors, start + jnp.arange(w))
     bins = bin_index(targets.position, cfg)  # [B, W]
-    steps = _scanned_steps if compiled_step_loop() else _unrolled_steps
+    steps = _scanned_steps if backend.compiled_step_loop() else _unrolled_steps
     heads, state, raster_end = steps(
         net, params, map_gates, state, raster, win, targets.cls, bins, cfg
     )
@@ -218,19 +214,6 @@ def window_terms(params, map_gates, carry, start, scenes: _Scenes, cfg: Config,
     )
     terms = {k: jnp.swapaxes(v.reshape(w, b), 0, 1) * valid for k, v in terms.items()}
     return (state, raster_end), terms
-
-
-# Steps per iteration of the compiled step loop (`lax.scan`'s unroll). On an H100 (paper
-# preset, grid 320, T 25) 4 gave a train step within 1.4 % of the unrolled window's, compiled
-# in 26 s instead of 202 s; 1 gave 6.5 % slower in 20 s (bench/README.md).
-STEP_LOOP_UNROLL = 4
-
-
-def compiled_step_loop() -> bool:
-    """Whether a window's steps run as a compiled loop (everywhere but XLA:CPU, whose
-    convolution gradients inside loops are many times slower; module docstring). On an
-    accelerator the unrolled window compiled for minutes (bench/README.md)."""
-    return jax.default_backend() != "cpu"
 
 
 def _chunk_heads(net: SceneGenNet):
@@ -296,7 +279,7 @@ def _unrolled_steps(net, params, map_gates, state, raster, win: Actors, cls, bin
 
 def _scanned_steps(net, params, map_gates, state, raster, win: Actors, cls, bins, cfg):
     """`_unrolled_steps` as a `lax.scan` over the window's steps 1..W-1 (step 0, which may
-    start from the zero state, runs before it): `STEP_LOOP_UNROLL` steps are compiled,
+    start from the zero state, runs before it): `backend.STEP_LOOP_UNROLL` steps are compiled,
     whatever the window.
     Each iteration draws the previous step's actor, updates the actor gates locally, steps
     the ConvLSTM and runs the backbone and heads of that one step (recomputed in the
@@ -324,7 +307,7 @@ def _scanned_steps(net, params, map_gates, state, raster, win: Actors, cls, bins
     drawn = jax.tree.map(lambda x: x[:-1], steps_major[0])
     (state, _, raster), rest = jax.lax.scan(
         step, (state, gates, raster), (drawn, steps_major[1][1:], steps_major[2][1:]),
-        unroll=STEP_LOOP_UNROLL,
+        unroll=backend.STEP_LOOP_UNROLL,
     )
     last = jax.tree.map(lambda x: x[-1], steps_major[0])
     raster_end = draw(raster, last, jnp.zeros((b,), bool))
@@ -410,43 +393,3 @@ def unroll_terms_and_grads(params, cfg: Config, maps, scene: Scene, scale):
     (_, g_params, g_map), terms = scan_windows(window, init, num_windows(cfg))
     (g_from_map,) = map_vjp(g_map)
     return _join_windows(terms, scenes), jax.tree.map(jnp.add, g_params, g_from_map)
-
-
-def reference_step_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | None):
-    """The same terms computed the obvious way: a Python loop over steps, each step a full
-    ConvLSTM step on the concatenated input (map ++ actors ++ h1); for tests only."""
-    net = SceneGenNet(cfg)
-
-    apply = _bound(net, params)
-    b = maps.shape[0]
-    w_in = jnp.concatenate(
-        ([params["lstm1_map"]] if cfg.map_channels else [])
-        + [params["lstm1_act"], params["lstm1_rec"]],
-        axis=2,
-    )
-    n_actors = jnp.sum(scene.actors.valid, axis=1)
-    steps = int(jnp.max(n_actors)) + 1
-    actors = _pad_slots(scene.actors, max(steps, scene.actors.cls.shape[1]))
-    raster = jax.vmap(functools.partial(draw_actor, cfg=cfg))(
-        jnp.zeros((b, cfg.grid_size, cfg.grid_size, 9)), scene.ego, jnp.ones((b,), bool)
-    )
-    state = apply(SceneGenNet.initial_state, b)
-    out = {k: [] for k in TERMS}
-    for t in range(steps):
-        (h1, c1), (h2, c2) = state
-        x = jnp.concatenate([maps, raster, h1], axis=-1)
-        h1, c1 = lstm_gates(conv(x, w_in, params["lstm1_b"]), c1)
-        h2, c2 = lstm_gates(
-            conv(jnp.concatenate([h1, h2], -1), params["lstm2_w"], params["lstm2_b"]), c2
-        )
-        state = ((h1, c1), (h2, c2))
-        f = apply(SceneGenNet.features, h2)
-        a = jax.tree.map(lambda x, t=t: x[:, t], actors)
-        is_stop = n_actors == t
-        target = a.replace(cls=jnp.where(is_stop, STOP, a.cls))
-        heads = step_heads(net, params, f, target.cls, bin_index(target.position, cfg))
-        terms = head_terms(net, params, heads, target, is_stop, cfg, hard_negatives)
-        for k in TERMS:
-            out[k].append(terms[k] * (t <= n_actors))
-        raster = jax.vmap(functools.partial(draw_actor, cfg=cfg))(raster, a, jnp.zeros((b,), bool))
-    return {k: jnp.stack(v, axis=1) for k, v in out.items()}

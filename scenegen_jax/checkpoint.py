@@ -1,5 +1,6 @@
-"""Orbax checkpoints of the train state: periodic saves, keep the last few, resume from the
-latest good one.
+"""Orbax checkpoints of the train state: periodic saves, keep the last few, restore the latest
+good one (the whole state to resume training, or only some of its entries, e.g. the
+parameters, to score or sample).
 
 Every saved step carries the sha256 of each array (`CHECKSUM_FILE` in the step's folder),
 verified when it is restored, so flipped bytes inside a parameter file are caught rather than
@@ -22,8 +23,6 @@ import jax
 import numpy as np
 import orbax.checkpoint as ocp
 
-from scenegen_jax.train.step import TrainState
-
 log = logging.getLogger(__name__)
 CHECKSUM_FILE = "scenegen_sha256.json"
 TMP_MARKER = ".orbax-checkpoint-tmp"
@@ -40,6 +39,12 @@ def tree_checksums(tree) -> dict[str, str]:
         h.update(x.tobytes())
         out[jax.tree_util.keystr(path)] = h.hexdigest()
     return out
+
+
+def _abstract(x):
+    """Shape, dtype and a single-device sharding for restoring an array (or abstract array)."""
+    sharding = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+    return jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding)
 
 
 class DamagedCheckpoint(Exception):
@@ -76,8 +81,9 @@ class Checkpointer:
                 log.warning("%s: removing an unfinished save (%s)", self.directory, name)
                 shutil.rmtree(os.path.join(self.directory, name), ignore_errors=True)
 
-    def save(self, state: TrainState, force: bool = False) -> bool:
-        """Saves if the step is due (or `force`); returns whether it saved."""
+    def save(self, state, force: bool = False) -> bool:
+        """Saves a state (a NamedTuple with a `step` entry, e.g. `train.step.TrainState`) if
+        the step is due (or `force`); returns whether it saved."""
         step = int(state.step)
         saved = self.manager.save(step, args=ocp.args.StandardSave(state._asdict()), force=force)
         if saved:
@@ -89,6 +95,8 @@ class Checkpointer:
         return saved
 
     def _verify(self, step: int, restored: dict) -> None:
+        """Checks the restored arrays against the checksums saved with them (only the saved
+        entries that were restored, for a partial restore)."""
         path = os.path.join(self.directory, str(step), CHECKSUM_FILE)
         if not os.path.isfile(path):
             log.warning("%s: no checksums (saved by an older version); not verified", path)
@@ -99,6 +107,8 @@ class Checkpointer:
         except (OSError, json.JSONDecodeError) as e:
             raise DamagedCheckpoint(f"{path}: unreadable checksums ({e})") from e
         got = tree_checksums(restored)
+        entries = tuple(f"[{k!r}]" for k in restored)
+        want = {k: v for k, v in want.items() if k.startswith(entries)}
         bad = sorted(k for k in set(want) | set(got) if want.get(k) != got.get(k))
         if bad:
             raise DamagedCheckpoint(f"{path}: arrays differ from their checksums: {bad[:5]}")
@@ -111,14 +121,27 @@ class Checkpointer:
         self.manager.reload()
         log.warning("%s: damaged checkpoint moved to %s", src, dst)
 
-    def restore_latest(self, template: TrainState, step: int | None = None) -> TrainState | None:
+    def restore_latest(self, template, step: int | None = None):
         """The newest checkpoint that restores cleanly and matches its checksums, or None when
         there is none.
 
+        `template`: the state (a NamedTuple of arrays or abstract arrays), restored whole and
+        returned as that type; or a dict of some of its entries (e.g. {"params": ...}),
+        restored alone (the others are not read) and returned as a dict, with `step` the
+        checkpoint's step.
         With `step`, that checkpoint only (ValueError naming the saved steps if it is not
         there; None if it does not restore).
         """
-        abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, template._asdict())
+        whole = hasattr(template, "_asdict")
+        abstract = jax.tree.map(_abstract, template._asdict() if whole else dict(template))
+        if whole:
+            args = ocp.args.StandardRestore(abstract)
+        else:
+            args = ocp.args.PyTreeRestore(
+                abstract,
+                restore_args=ocp.checkpoint_utils.construct_restore_args(abstract),
+                partial_restore=True,
+            )
         steps = sorted(self.manager.all_steps(), reverse=True)
         if step is not None:
             if step not in steps:
@@ -128,7 +151,7 @@ class Checkpointer:
             steps = [step]
         for step in steps:
             try:
-                restored = self.manager.restore(step, args=ocp.args.StandardRestore(abstract))
+                restored = self.manager.restore(step, args=args)
                 self._verify(step, restored)
             except Exception as e:  # orbax raises many types for damaged files
                 log.warning(
@@ -143,7 +166,7 @@ class Checkpointer:
                     self._set_aside(step)
                 continue
             log.info("%s: restored the checkpoint of step %d", self.directory, step)
-            return TrainState(**restored)
+            return type(template)(**restored) if whole else dict(restored, step=step)
         return None
 
     def close(self) -> None:

@@ -1,0 +1,119 @@
+"""Every backend-specific choice, made here and nowhere else.
+
+What differs between XLA:CPU and accelerators: which loops are compiled (XLA:CPU runs
+convolution gradients inside loops many times slower), the scorer's compiler options, how many
+calls run at once and how many scenes are vmapped together, the device mesh, and returning the
+compiler's freed host memory.
+
+Concurrent calls: XLA:CPU runs calls made from different host threads side by side. One call
+at a time leaves a core idle whenever the program runs a small serial operation between its
+multi-threaded convolutions; concurrent calls on parts of a batch fill the cores (on 2 cores:
+sampling 1.2x faster, scoring 1.05-1.1x; bench/README.md). Accelerators run one batched call
+at a time.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import ctypes
+import os
+from collections.abc import Callable, Iterable, Iterator
+from typing import Any
+
+import jax
+import numpy as np
+from jax.sharding import Mesh
+
+# Steps per iteration of the compiled step loop (`lax.scan`'s unroll). On an H100 (paper
+# preset, grid 320, T 25) 4 gave a train step within 1.4 % of the unrolled window's, compiled
+# in 26 s instead of 202 s; 1 gave 6.5 % slower in 20 s (bench/README.md).
+STEP_LOOP_UNROLL = 4
+
+
+def on_cpu() -> bool:
+    """Whether JAX's default backend is XLA:CPU."""
+    return jax.default_backend() == "cpu"
+
+
+def cpu_cores() -> int:
+    """CPU cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def default_workers() -> int:
+    """Concurrent calls by default: one per CPU core on CPU, 1 on accelerators."""
+    return cpu_cores() if on_cpu() else 1
+
+
+def default_parallel() -> int:
+    """Scenes the sampler vmaps together by default: 1 on CPU, all on accelerators."""
+    return 1 if on_cpu() else 2**31 - 1
+
+
+def compiled_window_loop() -> bool:
+    """Whether the unroll's windows run as a compiled loop (everywhere but XLA:CPU)."""
+    return not on_cpu()
+
+
+def compiled_step_loop() -> bool:
+    """Whether a window's steps run as a compiled loop (everywhere but XLA:CPU, whose
+    convolution gradients inside loops are many times slower; `likelihood.unroll`). On an
+    accelerator the unrolled window compiled for minutes (bench/README.md)."""
+    return not on_cpu()
+
+
+def scoring_compiler_options() -> dict | None:
+    """XLA compiler options for the scorer (no gradients).
+
+    On XLA:CPU its convolutions then run through XLA's Eigen path instead of YNNPACK: the
+    backbone's 3 x 3, 32 -> 32 convolution takes 1.7 ms there at 128 x 128 against 3.0 ms,
+    the 5 x 5 ones the same; YNNPACK keeps what it runs by default besides convolutions (dots
+    and reductions). The train step keeps YNNPACK's convolutions, whose weight gradients are
+    2-4x faster than Eigen's, and so does the sampler, which ran 7 % slower with Eigen's
+    (bench/README.md). None (XLA's defaults) on other backends.
+    """
+    if not on_cpu():
+        return None
+    return {
+        "xla_cpu_experimental_ynn_fusion_type": (
+            "LIBRARY_FUSION_TYPE_INDIVIDUAL_DOT,LIBRARY_FUSION_TYPE_REDUCE"
+        ),
+    }
+
+
+def make_mesh(devices=None) -> Mesh:
+    """A 1-D mesh with a `data` axis over all local (or given) devices."""
+    devices = np.asarray(jax.devices() if devices is None else devices)
+    return Mesh(devices, ("data",))
+
+
+def release_freed_memory() -> None:
+    """Hands freed heap pages back to the OS (glibc's `malloc_trim`; a no-op elsewhere).
+
+    Compiling the train step at grid 128 leaves about 0.6 GiB of the compiler's freed memory
+    resident; returned before the first step, it no longer adds to the step's peak.
+    """
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
+def concurrent_map(fn: Callable[[Any], Any], items: Iterable, workers: int) -> Iterator:
+    """fn(item) for each item, in order, with up to `workers` calls running at once (threads).
+
+    Each result is waited for inside its thread: a call that returned before its computation
+    ran would leave the computations to run one after another.
+    """
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+
+    def call(item):
+        return jax.block_until_ready(fn(item))
+
+    items = list(items)
+    if workers == 1 or len(items) <= 1:
+        yield from map(call, items)
+        return
+    with concurrent.futures.ThreadPoolExecutor(min(workers, len(items))) as pool:
+        yield from pool.map(call, items)

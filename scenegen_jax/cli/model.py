@@ -1,0 +1,91 @@
+"""Models: `scenegen train`, `export-model` and `models`, and loading a model for the other
+commands (`--pretrained` or `--workdir`)."""
+
+from __future__ import annotations
+
+import json
+
+from scenegen_jax.cli.common import overrides
+from scenegen_jax.config import PRESETS, get_config
+
+
+def cmd_train(args) -> None:
+    from scenegen_jax.train.loop import train
+
+    cfg = get_config(args.config, **overrides(args.set))
+    if args.distributed:
+        import jax
+
+        jax.distributed.initialize()
+    state = train(
+        cfg,
+        args.data,
+        args.workdir,
+        args.steps,
+        save_every=args.save_every,
+        log_every=args.log_every,
+        keep=args.keep,
+        max_seconds=args.minutes * 60 if args.minutes else None,
+        init_from=args.init_from,
+        weights=args.weights,
+    )
+    print(json.dumps({"workdir": args.workdir, "step": int(state.step)}))
+
+
+def cmd_export_model(args) -> None:
+    from scenegen_jax.pretrained import save_pretrained
+    from scenegen_jax.workdir import load_params
+
+    cfg, params, step = load_params(args.workdir, args.step)
+    manifest = save_pretrained(args.out, cfg, params, step, args.workdir)
+    print(json.dumps({"out": args.out, **manifest}))
+
+
+def cmd_models(args) -> None:
+    from scenegen_jax.pretrained import available, load_pretrained
+
+    for name in available():
+        cfg, _, manifest = load_pretrained(name)
+        print(f"{name}\tconfig {cfg.name}, grid {cfg.grid_size}, step {manifest['step']}, "
+              f"{manifest['parameters']} parameters")
+
+
+def add_parsers(sub) -> None:
+    """Registers this module's subcommands."""
+    sp = sub.add_parser("train", help="train a model on a cache")
+    sp.add_argument("--config", default="tiny", choices=sorted(PRESETS))
+    sp.add_argument("--data", required=True, nargs="+", metavar="CACHE",
+                    help="cache directories from `prepare` (same config, any sources), "
+                    "trained on together")
+    sp.add_argument("--weights", type=float, nargs="+", metavar="W",
+                    help="one per --data cache: a scene comes from cache i with probability "
+                    "W_i / sum(W) (default: the scene counts, uniform over all scenes)")
+    sp.add_argument("--workdir", required=True,
+                    help="checkpoints, config.json, data.json, metrics.jsonl")
+    sp.add_argument("--steps", type=int, default=1000, help="total steps (resumes if fewer done)")
+    sp.add_argument("--save-every", type=int, default=100)
+    sp.add_argument("--log-every", type=int, default=10)
+    sp.add_argument("--keep", type=int, default=3, help="checkpoints kept")
+    sp.add_argument("--minutes", type=float, help="wall-time budget; stops and saves after it")
+    sp.add_argument(
+        "--init-from",
+        metavar="WORKDIR",
+        help="a fresh run starts from this workdir's trained parameters (fresh optimizer); "
+        "a model without map layers can be extended with them",
+    )
+    sp.add_argument(
+        "--distributed",
+        action="store_true",
+        help="multi-host: call jax.distributed.initialize() first",
+    )
+    sp.add_argument("--set", nargs="*", metavar="FIELD=VALUE", help="config overrides")
+    sp.set_defaults(func=cmd_train)
+
+    sp = sub.add_parser("export-model", help="write a workdir's parameters as a pretrained model")
+    sp.add_argument("--workdir", required=True)
+    sp.add_argument("--step", type=int, help="checkpoint step (default: the latest)")
+    sp.add_argument("--out", required=True, help="directory (config, parameters, manifest)")
+    sp.set_defaults(func=cmd_export_model)
+
+    sp = sub.add_parser("models", help="list the pretrained models shipped with the package")
+    sp.set_defaults(func=cmd_models)

@@ -1,0 +1,138 @@
+"""`scenegen sample`: new scenes on the maps and egos of cache scenes, with their files."""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+
+from tqdm import tqdm
+
+from scenegen_jax.cli.common import add_model_args, load_model
+from scenegen_jax.config import Config
+
+
+def parse_caps(pairs, cfg: Config):
+    """Per-class caps int32 [3] from `--cap CLASS=N ...` (default: max_actors each)."""
+    import numpy as np
+
+    from scenegen_jax.scene import CLASS_NAMES, NUM_CLASSES
+
+    caps = np.full(NUM_CLASSES, cfg.max_actors, np.int32)
+    for pair in pairs or []:
+        name, _, value = pair.partition("=")
+        if name not in CLASS_NAMES or not value.isdigit():
+            raise SystemExit(f"--cap {pair!r}: expected CLASS=N with CLASS in {CLASS_NAMES}")
+        caps[CLASS_NAMES.index(name)] = int(value)
+    return caps
+
+
+def write_sampled(out: str, scene, cache, cfg: Config, seed: int, heatmap_steps) -> dict:
+    """Writes one sampled scene's PNG (and heatmaps); returns its scenes.jsonl row."""
+    from scenegen_jax.sampling import STOP_REASONS, actor_records
+    from scenegen_jax.viz.heatmap import render_heatmaps
+    from scenegen_jax.viz.render import render_scene
+
+    scene_id, map_id = f"sample_{scene.index:06d}", cache.scene_ids[scene.map_index]
+    records = actor_records(scene.actors)
+    ego = scene.ego
+    title = f"{scene_id} on {map_id}  ({len(records)} actors, {scene.num_given} given)"
+    render_scene(os.path.join(out, "png", f"{scene_id}.png"), scene.map_raster,
+                 cfg.map_channels, scene.actors, ego, cfg, title=title)
+    if heatmap_steps:
+        render_heatmaps(os.path.join(out, "heatmaps", f"{scene_id}.png"), scene.map_raster,
+                        cfg.map_channels, scene.heatmaps, scene.heatmap_cls, heatmap_steps,
+                        scene.actors, ego, cfg, title=title)
+    return {
+        "scene": scene_id, "map_index": scene.map_index, "map_scene_id": map_id, "seed": seed,
+        "num_given": scene.num_given, "stop_reason": STOP_REASONS[scene.stop_reason],
+        "rejected": scene.rejected,
+        "ego": {"width": float(ego.size[0]), "length": float(ego.size[1]),
+                "vx": float(ego.velocity[0]), "vy": float(ego.velocity[1])},
+        "actors": records,
+    }
+
+
+def cmd_sample(args) -> None:
+    """Samples scenes on the maps and egos of cache scenes; writes JSON lines, ScenarioNet
+    pickles, PNGs and (with --heatmaps) per-step location heatmaps."""
+    from scenegen_jax.data.cache import load_cache
+    from scenegen_jax.data.scenarionet import scenario_from_frame, write_dataset
+    from scenegen_jax.sampling import HEATMAP_STEPS, SamplerOptions, frame_from_sample
+    from scenegen_jax.sampling.batch import sample_on_cache
+    from scenegen_jax.sampling.export import read_given
+    from scenegen_jax.scene import CLASS_NAMES
+
+    if args.num < 1 or args.batch_size < 1:
+        raise SystemExit("--num and --batch-size must be >= 1")
+    if args.proposals is not None and args.proposals < 1:
+        raise SystemExit("--proposals must be >= 1")
+    cfg, params, _ = load_model(args)
+    cache = load_cache(args.data)
+    cache.check_config(cfg)
+    indices = list(args.index) if args.index else list(range(len(cache)))
+    for i in indices:
+        if not 0 <= i < len(cache):
+            raise IndexError(f"{cache.path}: --index {i} out of range [0, {len(cache)})")
+    given = []
+    if args.given:  # scene k is sampled beside the ego of cache scene indices[k mod len]
+        scene_egos = cache.ego_size[[indices[k % len(indices)] for k in range(args.num)]]
+        given = read_given(args.given, cfg, scene_egos, args.allow_overlap)
+    steps = HEATMAP_STEPS if args.heatmaps else ()
+    out = os.path.abspath(args.out)
+    for sub_dir in ("png", "scenarionet") + (("heatmaps",) if steps else ()):
+        os.makedirs(os.path.join(out, sub_dir), exist_ok=True)
+    options = SamplerOptions(proposals=args.proposals, heatmap_steps=steps)
+    scenes = sample_on_cache(params, cfg, cache, args.num, args.seed, indices=indices,
+                             given=given, caps=parse_caps(args.cap, cfg),
+                             batch_size=args.batch_size, options=options)
+    scenarios, counts = [], dict.fromkeys(CLASS_NAMES, 0)
+    with (
+        open(os.path.join(out, "scenes.jsonl"), "w") as jsonl,
+        tqdm(total=args.num, desc="sample", unit="scene", file=sys.stderr) as bar,
+    ):
+        for scene in scenes:
+            row = write_sampled(out, scene, cache, cfg, args.seed, steps)
+            jsonl.write(json.dumps(row) + "\n")
+            for r in row["actors"]:
+                counts[r["class"]] += 1
+            frame = frame_from_sample(scene.actors, scene.ego, row["map_scene_id"],
+                                      city_from_ego=cache.city_from_ego[scene.map_index])
+            scenarios.append(scenario_from_frame(frame, row["scene"]))
+            bar.update(1)
+    write_dataset(scenarios, os.path.join(out, "scenarionet"))
+    print(json.dumps({"out": out, "scenes": args.num, "actors": counts}))
+
+
+def add_parsers(sub) -> None:
+    """Registers this module's subcommands."""
+    sp = sub.add_parser("sample", help="sample new scenes on the maps of cache scenes")
+    add_model_args(sp)
+    sp.add_argument("--data", required=True, help="cache whose maps and egos condition the scenes")
+    sp.add_argument("--num", type=int, required=True, help="scenes to sample")
+    sp.add_argument("--out", required=True, help="output directory")
+    sp.add_argument("--proposals", type=int, help="best-of-M proposals (default: the config's)")
+    sp.add_argument("--seed", type=int, default=0)
+    sp.add_argument(
+        "--given",
+        help="JSON lines of actors to condition on (scenes.jsonl format); "
+        "scene k uses line k mod lines",
+    )
+    sp.add_argument(
+        "--allow-overlap",
+        action="store_true",
+        help="keep --given vehicle and bicyclist boxes that overlap each other or the ego "
+        "(refused by default)",
+    )
+    sp.add_argument("--cap", nargs="*", metavar="CLASS=N", help="max actors per class")
+    sp.add_argument(
+        "--heatmaps",
+        action="store_true",
+        help="also render location heatmaps at steps 0, 5, 10, 15, 20",
+    )
+    sp.add_argument(
+        "--index", type=int, nargs="*", help="cache scene indices to cycle through (default: all)"
+    )
+    sp.add_argument("--batch-size", type=int, default=8,
+                    help="scenes per batch, split into concurrent calls (one per core on CPU)")
+    sp.set_defaults(func=cmd_sample)

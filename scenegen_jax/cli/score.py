@@ -1,0 +1,184 @@
+"""Scoring real scenes: `scenegen score`, `evaluate` (the paper's Table 1) and `compare`."""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+
+from scenegen_jax.cli.common import add_model_args, load_model
+
+
+def cmd_score(args) -> None:
+    import csv
+
+    import numpy as np
+
+    from scenegen_jax.data.union import load_union
+    from scenegen_jax.distributions import TERMS
+    from scenegen_jax.eval.nll import (
+        actor_steps,
+        score_cache,
+        source_slices,
+        summarize_by_source,
+        summarize_scores,
+    )
+
+    if args.top_k < 0 or (args.top_k and not args.render):
+        raise SystemExit("--top-k K needs K >= 0 and --render DIR")
+    if args.batch_size < 1:
+        raise SystemExit(f"--batch-size must be >= 1, got {args.batch_size}")
+    cfg, params, _ = load_model(args)
+    cache = load_union(args.data, cfg)  # every --data cache, its scenes one after another
+    scores = score_cache(params, cache, cfg, batch_size=args.batch_size)
+    total = sum(scores[k] for k in TERMS)
+    actor = actor_steps(scores)
+    n_actors = actor.sum(1)
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    with open(args.out, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(
+            [
+                "index",
+                "scene_id",
+                "actors",
+                "scene_nll",
+                "nll_per_actor",
+                *[f"{k}_nll" for k in TERMS],
+                "source",
+            ]
+        )
+        # index: the scene's index in its own cache; source: that cache's label.
+        for source, part in source_slices(cache):
+            for i in range(part.start, part.stop):
+                per_actor = total[i].sum() / max(n_actors[i], 1)
+                writer.writerow(
+                    [
+                        i - part.start,
+                        cache.scene_ids[i],
+                        int(n_actors[i]),
+                        f"{total[i].sum():.4f}",
+                        f"{per_actor:.4f}",
+                        *[f"{scores[k][i].sum():.4f}" for k in TERMS],
+                        source,
+                    ]
+                )
+    summary = summarize_scores(scores)
+    summary["by_source"] = summarize_by_source(scores, cache)
+    if args.top_k:
+        summary["rendered"] = _render_worst(scores, cache, cfg, args.top_k, args.render)
+    print(json.dumps({"out": args.out, **summary}))
+    if args.actors_out:
+        parts = source_slices(cache)  # per scene: its source's number in source_labels
+        which = np.concatenate([np.full(p.stop - p.start, n) for n, (_, p) in enumerate(parts)])
+        np.savez(args.actors_out, **scores, source=which,
+                 source_labels=np.array([name for name, _ in parts]))
+
+
+def _render_worst(scores, cache, cfg, k: int, out_dir: str) -> list[str]:
+    """Renders the k least likely scenes with their least likely actor highlighted."""
+    import numpy as np
+
+    from scenegen_jax.data.cache import cached_scene
+    from scenegen_jax.eval.nll import worst_scenes
+    from scenegen_jax.raster.transform import scene_from_cached
+    from scenegen_jax.scene import CLASS_NAMES
+    from scenegen_jax.viz.render import render_scene
+
+    os.makedirs(out_dir, exist_ok=True)
+    paths = []
+    for rank, (i, step, per_actor, terms) in enumerate(worst_scenes(scores, k)):
+        canvas, actors, ego = cached_scene(cache, i, cfg)
+        map_raster, scene, _ = scene_from_cached(canvas, actors, ego, 0.0, cfg)
+        cls = CLASS_NAMES[int(scene.actors.cls[step])]
+        worst = ", ".join(f"{t} {v:.1f}" for t, v in terms.items())
+        path = os.path.join(out_dir, f"top{rank + 1:02d}_{i:05d}.png")
+        render_scene(
+            path,
+            np.asarray(map_raster),
+            cfg.map_channels,
+            scene.actors,
+            scene.ego,
+            cfg,
+            highlight=step,
+            title=f"#{rank + 1} {cache.scene_ids[i]}: {per_actor:.2f} nats/actor\n"
+            f"highlighted {cls} ({sum(terms.values()):.1f} nats: {worst})",
+        )
+        paths.append(path)
+    return paths
+
+
+def cmd_evaluate(args) -> None:
+    from scenegen_jax.data.union import load_union
+    from scenegen_jax.eval.evaluate import evaluate, format_table
+
+    if args.num < 1:
+        raise SystemExit(f"--num must be >= 1, got {args.num}")
+    cfg, params, step = load_model(args)
+    cache = load_union(args.data, cfg)
+    train_cache = load_union(args.train_data, cfg)
+    report = evaluate(params, cfg, cache, train_cache, args.num, args.seed)
+    report["step"] = step
+    report["command"] = " ".join(["scenegen", *sys.argv[1:]])
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    with open(args.out, "w") as f:
+        json.dump(report, f, indent=1)
+    print(format_table(report))
+
+
+def cmd_compare(args) -> None:
+    from scenegen_jax.eval.compare import compare_files
+
+    report = compare_files(args.a, args.b, args.term, args.block, args.samples, args.seed)
+    if args.out:
+        os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+        with open(args.out, "w") as f:
+            json.dump(report, f, indent=1)
+    print(f"{args.term} NLL per actor, A minus B (95% block-bootstrap interval)")
+    for name, r in report["rows"].items():
+        if r["actors"]:
+            print(f"  {name:<11} {r['diff']:+.3f} [{r['low']:+.3f}, {r['high']:+.3f}]"
+                  f"  ({r['actors']} actors)")
+        else:
+            print(f"  {name:<11} no actors")
+
+
+def add_parsers(sub) -> None:
+    """Registers this module's subcommands."""
+    sp = sub.add_parser("score", help="NLL of real scenes under a trained model")
+    add_model_args(sp)
+    sp.add_argument("--data", required=True, nargs="+", metavar="CACHE",
+                    help="cache directories to score (summary also per source)")
+    sp.add_argument("--out", required=True, help="CSV, one row per scene (with its source)")
+    sp.add_argument("--batch-size", type=int, default=8,
+                    help="scenes per batch, split into concurrent calls (one per core on CPU)")
+    sp.add_argument("--actors-out", help="optional .npz of per-step NLL terms")
+    sp.add_argument("--top-k", type=int, default=0,
+                    help="render the K scenes with the highest NLL per actor (needs --render)")
+    sp.add_argument("--render", help="directory for the --top-k renders")
+    sp.set_defaults(func=cmd_score)
+
+    sp = sub.add_parser("evaluate", help="NLL and MMD of SceneGen and baselines (Table 1)")
+    add_model_args(sp)
+    sp.add_argument("--data", required=True, nargs="+", metavar="CACHE",
+                    help="caches of the evaluation split (NLL also per source)")
+    sp.add_argument("--train-data", required=True, nargs="+", metavar="CACHE",
+                    help="training caches (Procedural's KDE)")
+    sp.add_argument("--num", type=int, default=64, help="conditioning scenes for MMD")
+    sp.add_argument("--seed", type=int, default=0)
+    sp.add_argument("--out", required=True, help="report JSON")
+    sp.set_defaults(func=cmd_evaluate)
+
+    sp = sub.add_parser(
+        "compare", help="paired NLL difference of two models on the same scenes, with intervals"
+    )
+    sp.add_argument("--a", nargs="+", required=True,
+                    help="model A's `score --actors-out` files (one per seed)")
+    sp.add_argument("--b", nargs="+", required=True, help="model B's, paired with --a in order")
+    sp.add_argument("--term", default="location",
+                    help="class, location, box, heading, velocity or total")
+    sp.add_argument("--block", type=int, default=10, help="consecutive scenes per bootstrap block")
+    sp.add_argument("--samples", type=int, default=2000, help="bootstrap resamples")
+    sp.add_argument("--seed", type=int, default=0)
+    sp.add_argument("--out", help="optional report JSON")
+    sp.set_defaults(func=cmd_compare)

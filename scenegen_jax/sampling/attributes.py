@@ -1,0 +1,95 @@
+"""Box size, heading and velocity of sampled actors: best-of-M proposals per attribute, then
+clamped and made finite (`MIN_SIZE_M`, `MAX_SIZE_M`, `MAX_SPEED_MPS`)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from scenegen_jax.config import Config
+from scenegen_jax.distributions import (
+    best_of_m,
+    box_proposal_score,
+    heading_log_prob,
+    is_relative_direction,
+    sample_box,
+    sample_heading,
+    sample_velocity,
+    velocity_proposal_score,
+)
+from scenegen_jax.scene import PEDESTRIAN, wrap_angle
+
+MIN_SIZE_M = 0.2
+MAX_SIZE_M = 20.0
+MAX_SPEED_MPS = 50.0
+
+
+def sample_attributes(
+    keys: jax.Array,
+    box_raw: jnp.ndarray,
+    heading_raw: jnp.ndarray,
+    velocity_raw: jnp.ndarray,
+    cls: jnp.ndarray,
+    cfg: Config,
+    proposals: int,
+) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
+    """Box size, heading and velocity of R actors, each the most likely of M draws.
+
+    Best-of-M (paper sec. 3.3): M proposals per attribute, keep the most likely under its own
+    mixture (NaN never wins, ties keep the first), with densities in the mixtures' own
+    coordinates: (log width, log length) for boxes (`box_proposal_score`) and (log speed,
+    direction) for velocities (`velocity_proposal_score`). Planar densities would carry the
+    Jacobians 1 / (w l) and 1 / s^2 and make the smallest box and the slowest speed win (with
+    M = 10 every sampled speed fell below 1 m/s). Whether an actor stands is drawn once, by its
+    first velocity proposal (probability pi_0, a probability that is not compared with
+    densities); a moving actor keeps the best of its moving proposals. The velocity is drawn
+    given the chosen heading (its direction is relative to it for vehicles and bicyclists).
+    Each attribute is one `distributions.best_of_m` call over the R actors. Keys: actor r
+    splits keys[r] into (box, heading, velocity) keys, each split into M proposal keys. With
+    M = 1 the single draw is kept (plain sampling).
+
+    Pedestrians get the nominal square box (`cfg.pedestrian_size_m`) and the velocity
+    direction as heading (0 when standing). Outputs are clamped and made finite (see the
+    module docstring).
+
+    Args:
+      keys: [R] PRNG keys.
+      box_raw, heading_raw, velocity_raw: [R, ...] raw head outputs of each actor's class.
+      cls: int32 [R] classes (vehicle, pedestrian or bicyclist).
+      cfg: config (zero_speed, pedestrian_size_m).
+      proposals: M >= 1 (static).
+
+    Returns:
+      (size [R, 2] (width, length) m, heading [R] rad in [0, 2pi), velocity [R, 2] m/s).
+    """
+    zero = cfg.zero_speed
+    sub = jax.vmap(lambda k: jax.random.split(k, 3))(keys)  # [R, 3]: box, heading, velocity
+    size = best_of_m(sub[:, 0], sample_box, box_proposal_score, box_raw, proposals)
+    heading = best_of_m(sub[:, 1], sample_heading, heading_log_prob, heading_raw, proposals)
+    heading = jnp.nan_to_num(heading, nan=0.0, posinf=0.0, neginf=0.0)
+
+    def standing_first(vels, score):  # the first proposal decides standing or moving
+        moving = (jnp.sum(vels * vels, axis=-1) > zero * zero).reshape(score.shape)
+        first = jnp.arange(score.shape[1]) == 0
+        return jnp.where(moving[:, :1], jnp.where(moving, score, -jnp.inf),
+                         jnp.where(first, 0.0, -jnp.inf))
+
+    velocity = best_of_m(
+        sub[:, 2],
+        lambda k, p: sample_velocity(k, p[0], p[1], p[2], zero),
+        lambda p, v: velocity_proposal_score(p[0], v, p[1], p[2], zero),
+        (velocity_raw, heading, is_relative_direction(cls)),
+        proposals,
+        adjust=standing_first,
+    )
+    velocity = jnp.nan_to_num(velocity, nan=0.0, posinf=0.0, neginf=0.0)
+
+    speed = jnp.sqrt(jnp.sum(velocity**2, axis=-1))
+    velocity = velocity * jnp.minimum(1.0, MAX_SPEED_MPS / jnp.maximum(speed, 1e-12))[:, None]
+    size = jnp.clip(jnp.nan_to_num(size, nan=MIN_SIZE_M), MIN_SIZE_M, MAX_SIZE_M)
+    is_ped = cls == PEDESTRIAN
+    moving = speed > zero
+    walk = jnp.arctan2(velocity[:, 1], jnp.where(moving, velocity[:, 0], 1.0))
+    size = jnp.where(is_ped[:, None], jnp.asarray(cfg.pedestrian_size_m, size.dtype), size)
+    heading = wrap_angle(jnp.where(is_ped, jnp.where(moving, walk, 0.0), heading))
+    return size.astype(jnp.float32), heading.astype(jnp.float32), velocity.astype(jnp.float32)

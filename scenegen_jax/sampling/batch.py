@@ -1,0 +1,311 @@
+"""Many scenes at once: keys per scene, batches of `rollout` in one compiled call, and
+concurrent calls on parts of a batch.
+
+One key scheme everywhere: scene i of a request with key k uses `scene_key(k, i)`, so a seed
+and a scene index give the same scene through `sample_scenes`, `scenegen sample` and
+`scenegen evaluate`, whatever the batch size.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Iterator, Sequence
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from scenegen_jax.backend import concurrent_map, default_parallel, default_workers
+from scenegen_jax.config import Config
+from scenegen_jax.raster.transform import crop_map
+from scenegen_jax.sampling.model import Model, NetworkModel
+from scenegen_jax.sampling.rollout import (
+    DEFAULT_OPTIONS,
+    Sample,
+    SamplerOptions,
+    _pad_given,
+    rollout,
+)
+from scenegen_jax.scene import NUM_CLASSES, Actors, empty_actors
+
+
+def scene_key(key: jax.Array, index) -> jax.Array:
+    """The key of scene `index` (int or int array) of a request made with `key`."""
+    return jax.vmap(jax.random.fold_in, in_axes=(None, 0))(key, jnp.ravel(index)).reshape(
+        jnp.shape(index)
+    )
+
+
+def scene_keys(key: jax.Array, num_maps: int, num_per_map: int, first: int = 0) -> jax.Array:
+    """[B, S] keys: scene (b, s) is scene `first + b * S + s` (`scene_key`)."""
+    index = first + jnp.arange(num_maps * num_per_map).reshape(num_maps, num_per_map)
+    return scene_key(key, index)
+
+
+def _take(tree, i):
+    return jax.tree.map(lambda x: x[i], tree)
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "options", "model"))
+def _sample_batch(keys, params, maps, egos, given, caps, *, cfg: Config,
+                  options: SamplerOptions, model: Model | None) -> Sample:
+    b, s = keys.shape[:2]
+    parallel = default_parallel() if options.parallel is None else options.parallel
+    if model is None:
+        model = NetworkModel(cfg, single_example=parallel == 1)
+
+    def one(key, map_raster, ego, g, c):
+        return rollout(key, params, map_raster, ego, cfg, g, c, options, model)
+
+    if parallel >= b * s:
+        per_map = jax.vmap(one, in_axes=(0, None, None, None, None))
+        return jax.vmap(per_map)(keys, maps, egos, given, caps)
+
+    impl = jax.random.key_impl(keys)
+
+    def flat(x):  # scene (b, s) -> index b * S + s
+        key, i = x
+        key = jax.random.wrap_key_data(key, impl=impl)
+        return one(key, maps[i], _take(egos, i), _take(given, i), caps[i])
+
+    # Groups of `parallel` scenes; the last group is padded with copies of the last scene.
+    n = b * s
+    groups = -(-n // parallel)
+    scene = jnp.minimum(jnp.arange(groups * parallel, dtype=jnp.int32), n - 1)
+    data = jax.random.key_data(keys)  # raw key data: typed keys do not pass through lax.map
+    data = data.reshape(n, *data.shape[2:])[scene]
+    if parallel == 1:
+        out, lead = lax.map(flat, (data, scene // s)), 1
+    else:
+        grouped = (data.reshape(groups, parallel, *data.shape[1:]),
+                   (scene // s).reshape(groups, parallel))
+        out, lead = lax.map(jax.vmap(flat), grouped), 2
+
+    def unflat(x):  # [groups (, parallel), ...] -> [B, S, ...]
+        rest = x.shape[lead:]
+        return x.reshape(groups * parallel, *rest)[:n].reshape(b, s, *rest)
+
+    return jax.tree.map(unflat, out)
+
+
+def sample_batch(
+    keys: jax.Array,
+    params: Any,
+    maps: jnp.ndarray,
+    egos: Actors,
+    given: Actors,
+    caps: jnp.ndarray,
+    *,
+    cfg: Config,
+    options: SamplerOptions = DEFAULT_OPTIONS,
+    model: Model | None = None,
+) -> Sample:
+    """One compiled call for a batch: scene (b, s) is `rollout(keys[b, s], params, maps[b],
+    ...)`. Compiled once per (`cfg.inference()`, options, model, shapes).
+
+    The B x S scenes run `options.parallel` at a time under vmap (`lax.map` over groups); a
+    vmapped group runs until its longest scene is done. With parallel = 1 each scene runs on
+    its own (no vmap), which is fastest on CPU: there a vmapped group's activations leave the
+    cache and its convolutions slow down more than batching gains (bench/README.md).
+
+    Args:
+      keys: [B, S] keys; S samples per map share its map, ego, given actors and caps.
+      params: network parameters.
+      maps: float32 [B, H, W, Cm].
+      egos: Actors [B].
+      given: Actors [B, N] (all invalid for none).
+      caps: int32 [B, 3].
+      cfg, options, model: as in `rollout` (static).
+
+    Returns:
+      Sample with leading axes [B, S].
+    """
+    return _sample_batch(keys, params, maps, egos, given, caps, cfg=cfg.inference(),
+                         options=options, model=model)
+
+
+def sample_split(keys: jax.Array, params: Any, maps, egos: Actors, given: Actors, caps, *,
+                 cfg: Config, options: SamplerOptions = DEFAULT_OPTIONS,
+                 model: Model | None = None, workers: int | None = None) -> Sample:
+    """`sample_batch(keys, params, maps, egos, given, caps, ...)` as `workers` concurrent
+    calls on equal parts of the batch (`backend.concurrent_map`); each scene depends only on
+    its own key and inputs, so the scenes are those of a single call.
+
+    The batch is split along the maps axis B when B >= workers (or S = 1), else along the
+    samples axis S. Where scenes run one at a time (`options.parallel` 1, the CPU default)
+    each call takes one map (or sample), so every scene runs the same compiled program
+    whatever the batch size and a scene is bit for bit the same in any batch; otherwise the
+    parts are equal, the last padded with copies of the last map (or key), so that one
+    compilation serves all (the padding's scenes are dropped).
+
+    Args:
+      keys, params, maps, egos, given, caps, cfg, options, model: as in `sample_batch`.
+      workers: concurrent calls (threads); default `backend.default_workers()` (one
+        per core on CPU, 1 on accelerators).
+
+    Returns:
+      Sample with leading axes [B, S].
+    """
+    kwargs = {"cfg": cfg, "options": options, "model": model}
+    workers = default_workers() if workers is None else workers
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    b, s = keys.shape[:2]
+    axis = 0 if b >= workers or s == 1 else 1
+    n = (b, s)[axis]
+    size = -(-n // min(workers, n))
+    if (default_parallel() if options.parallel is None else options.parallel) == 1:
+        size = 1  # one map (or sample) per call: one program for every scene, any batch size
+    parts = -(-n // size)
+    if parts == 1:
+        return sample_batch(keys, params, maps, egos, given, caps, **kwargs)
+    index = np.minimum(np.arange(parts * size), n - 1).reshape(parts, size)
+    per_map = (maps, egos, given, caps)
+
+    def call(i):
+        if axis == 0:
+            return sample_batch(keys[i], params, *jax.tree.map(lambda x: x[i], per_map), **kwargs)
+        return sample_batch(keys[:, i], params, *per_map, **kwargs)
+
+    outs = list(concurrent_map(call, index, workers))
+    whole = slice(None)
+    keep = (slice(0, n), whole) if axis == 0 else (whole, slice(0, n))
+    return jax.tree.map(lambda *x: jnp.concatenate(x, axis=axis)[keep], *outs)
+
+
+def batch_inputs(cfg: Config, num_maps: int, given: Actors | None = None, caps=None):
+    """(given Actors [B, N], caps int32 [B, 3]) for `sample_batch` from optional inputs.
+
+    `given` may be None, Actors [G] (shared by all maps) or Actors [B, G]; `caps` None, [3]
+    or [B, 3].
+    """
+    n = cfg.max_actors
+    if given is None:
+        given = jax.tree.map(lambda x: jnp.broadcast_to(x, (num_maps, *x.shape)), empty_actors(n))
+    else:
+        given = jax.tree.map(jnp.asarray, given)
+        if given.cls.ndim == 1:
+            given = jax.tree.map(lambda x: jnp.broadcast_to(x, (num_maps, *x.shape)), given)
+        given = jax.vmap(lambda g: _pad_given(g, n))(given)
+    if caps is None:
+        caps = jnp.full((num_maps, NUM_CLASSES), n, jnp.int32)
+    caps = jnp.broadcast_to(jnp.asarray(caps, jnp.int32), (num_maps, NUM_CLASSES))
+    return given, caps
+
+
+def sample_scenes(
+    key: jax.Array,
+    params: Any,
+    cfg: Config,
+    maps: jnp.ndarray,
+    egos: Actors,
+    given: Actors | None = None,
+    num_per_map: int = 1,
+    caps=None,
+    *,
+    first: int = 0,
+    options: SamplerOptions = DEFAULT_OPTIONS,
+    model: Model | None = None,
+    workers: int | None = None,
+) -> Sample:
+    """Samples `num_per_map` scenes for each of B maps (`sample_split`).
+
+    Scene (b, s) is scene number `first + b * S + s` of the request: `rollout(scene_key(key,
+    first + b * S + s), params, maps[b], egos[b], ...)` bit for bit, so the same key and
+    scene number give the same scene in any batch.
+
+    Args:
+      key: PRNG key of the request.
+      params: network parameters.
+      cfg: config.
+      maps: float32 [B, H, W, Cm] map channels.
+      egos: Actors [B].
+      given: optional Actors [G] (shared) or [B, G] to condition on (see `rollout`).
+      num_per_map: S, samples per map.
+      caps: optional int32 [3] or [B, 3] per-class caps.
+      first: number of this call's first scene within the request.
+      options, model: see `rollout`.
+      workers: concurrent calls, see `sample_split`.
+
+    Returns:
+      Sample with leading axes [B, S].
+    """
+    b = maps.shape[0]
+    given, caps = batch_inputs(cfg, b, given, caps)
+    return sample_split(scene_keys(key, b, num_per_map, first), params, maps, egos, given, caps,
+                        cfg=cfg, options=options, model=model, workers=workers)
+
+
+@dataclasses.dataclass
+class CacheScene:
+    """One scene sampled on a cache scene's map and ego (numpy arrays).
+
+    index: the scene's number k in the request (its key is `scene_key(key, k)`).
+    map_index: the cache scene whose map and ego condition it.
+    map_raster: float32 [H, W, Cm] that map, cropped (no rotation).
+    ego, actors: Actors (unbatched) and Actors [N].
+    num_given, stop_reason, rejected, heatmaps, heatmap_cls: as in `Sample`.
+    """
+
+    index: int
+    map_index: int
+    map_raster: np.ndarray
+    ego: Actors
+    actors: Actors
+    num_given: int
+    stop_reason: int
+    rejected: int
+    heatmaps: np.ndarray
+    heatmap_cls: np.ndarray
+
+
+def sample_on_cache(
+    params: Any,
+    cfg: Config,
+    cache,
+    num: int,
+    seed: int,
+    *,
+    indices: Sequence[int] | None = None,
+    given: Sequence[Actors] = (),
+    caps=None,
+    batch_size: int = 8,
+    options: SamplerOptions = DEFAULT_OPTIONS,
+) -> Iterator[CacheScene]:
+    """Samples `num` scenes on the maps and egos of a cache (a `Cache` or `CacheUnion`), in
+    batches of `batch_size`, and yields them in order.
+
+    Scene k uses cache scene `indices[k % len(indices)]` (default: every scene in order),
+    given actors `given[k % len(given)]` (numpy Actors [N] each; none by default) and key
+    `scene_key(jax.random.key(seed), k)`: the scenes do not depend on the batch size.
+    """
+    if num < 1 or batch_size < 1:
+        raise ValueError(f"num and batch_size must be >= 1, got {num} and {batch_size}")
+    indices = list(range(len(cache))) if indices is None else list(indices)
+    key = jax.random.key(seed)
+    crop = jax.jit(crop_map, static_argnums=2)
+    maps: dict[int, np.ndarray] = {}
+
+    def map_of(i: int) -> np.ndarray:
+        if i not in maps:
+            maps[i] = np.asarray(crop(jnp.asarray(cache.maps[i]), 0.0, cfg))
+        return maps[i]
+
+    for start in range(0, num, batch_size):
+        ks = np.minimum(np.arange(start, start + batch_size), num - 1)  # last batch padded
+        map_ids = [indices[k % len(indices)] for k in ks]
+        egos = cache.ego(np.asarray(map_ids))
+        rows = None
+        if given:
+            rows = jax.tree.map(lambda *x: np.stack(x), *[given[k % len(given)] for k in ks])
+        sample = sample_scenes(key, params, cfg, np.stack([map_of(i) for i in map_ids]), egos,
+                               rows, 1, caps, first=start, options=options)
+        sample = jax.device_get(jax.tree.map(lambda x: x[:, 0], sample))
+        for j in range(min(batch_size, num - start)):
+            row = jax.tree.map(lambda x, j=j: x[j], sample)
+            yield CacheScene(start + j, map_ids[j], map_of(map_ids[j]), _take(egos, j),
+                             row.actors, int(row.num_given), int(row.stop_reason),
+                             int(row.rejected), row.heatmaps, row.heatmap_cls)

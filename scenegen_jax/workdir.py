@@ -1,0 +1,40 @@
+"""A training workdir as the other commands read it: `config.json` and the parameters of a
+checkpoint (`load_params`), without the optimizer state or anything of `train/`."""
+
+from __future__ import annotations
+
+import os
+
+import jax
+
+from scenegen_jax.checkpoint import Checkpointer
+from scenegen_jax.config import Config
+from scenegen_jax.model.network import init_params
+
+CONFIG_FILE = "config.json"
+CHECKPOINTS = "checkpoints"
+
+
+def load_workdir_config(workdir: str) -> Config:
+    """The config a workdir was trained with."""
+    path = os.path.join(workdir, CONFIG_FILE)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"{path}: not a training workdir (no {CONFIG_FILE})")
+    with open(path) as f:
+        return Config.from_json(f.read(), path)
+
+
+def load_params(workdir: str, step: int | None = None):
+    """(config, parameters, step) of a training workdir: the parameters of its newest readable
+    checkpoint, or of the one saved at `step`; only the parameters are read."""
+    cfg = load_workdir_config(workdir)
+    directory = os.path.join(workdir, CHECKPOINTS)
+    if not os.path.isdir(directory):
+        raise FileNotFoundError(f"{directory}: no checkpoints (train this workdir first)")
+    template = {"params": jax.eval_shape(lambda: init_params(cfg, jax.random.key(0)))}
+    ckpt = Checkpointer(directory, every=1)
+    restored = ckpt.restore_latest(template, step)
+    ckpt.close()
+    if restored is None:
+        raise FileNotFoundError(f"{directory}: no readable checkpoint")
+    return cfg, restored["params"], int(restored["step"])
