@@ -17,7 +17,8 @@ import shapely
 
 from scenegen_jax.cli import main as cli_main
 from scenegen_jax.config import get_config
-from scenegen_jax.data.av2 import CATEGORY_TO_CLASS, read_log, vector_map_from_json
+from scenegen_jax.data.av2 import CATEGORY_TO_CLASS, read_log
+from scenegen_jax.data.av2_map import vector_map_from_json
 from scenegen_jax.data.prepare import prepare
 from scenegen_jax.data.sources import source_spec
 from scenegen_jax.raster.map import ALL_MAP_CHANNELS, rasterize_map

@@ -10,14 +10,11 @@ from scenegen_jax.cli.common import add_model_args, load_model
 
 
 def cmd_score(args) -> None:
-    import csv
 
     import numpy as np
 
     from scenegen_jax.data.union import load_union
-    from scenegen_jax.distributions import TERMS
     from scenegen_jax.eval.nll import (
-        actor_steps,
         score_cache,
         source_slices,
         summarize_by_source,
@@ -31,38 +28,7 @@ def cmd_score(args) -> None:
     cfg, params, _ = load_model(args)
     cache = load_union(args.data, cfg)  # every --data cache, its scenes one after another
     scores = score_cache(params, cache, cfg, batch_size=args.batch_size)
-    total = sum(scores[k] for k in TERMS)
-    actor = actor_steps(scores)
-    n_actors = actor.sum(1)
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w", newline="") as f:
-        writer = csv.writer(f)
-        writer.writerow(
-            [
-                "index",
-                "scene_id",
-                "actors",
-                "scene_nll",
-                "nll_per_actor",
-                *[f"{k}_nll" for k in TERMS],
-                "source",
-            ]
-        )
-        # index: the scene's index in its own cache; source: that cache's label.
-        for source, part in source_slices(cache):
-            for i in range(part.start, part.stop):
-                per_actor = total[i].sum() / max(n_actors[i], 1)
-                writer.writerow(
-                    [
-                        i - part.start,
-                        cache.scene_ids[i],
-                        int(n_actors[i]),
-                        f"{total[i].sum():.4f}",
-                        f"{per_actor:.4f}",
-                        *[f"{scores[k][i].sum():.4f}" for k in TERMS],
-                        source,
-                    ]
-                )
+    write_scores_csv(args.out, scores, cache)
     summary = summarize_scores(scores)
     summary["by_source"] = summarize_by_source(scores, cache)
     if args.top_k:
@@ -73,6 +39,29 @@ def cmd_score(args) -> None:
         which = np.concatenate([np.full(p.stop - p.start, n) for n, (_, p) in enumerate(parts)])
         np.savez(args.actors_out, **scores, source=which,
                  source_labels=np.array([name for name, _ in parts]))
+
+
+def write_scores_csv(path: str, scores: dict, cache) -> None:
+    """One row per scene: its index in its own cache, id, actors, scene NLL, NLL per actor,
+    each term's NLL and its source (the cache's label)."""
+    import csv
+
+    from scenegen_jax.distributions import TERMS
+    from scenegen_jax.eval.nll import actor_steps, source_slices
+
+    total = sum(scores[k] for k in TERMS)
+    n_actors = actor_steps(scores).sum(1)
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["index", "scene_id", "actors", "scene_nll", "nll_per_actor",
+                         *[f"{k}_nll" for k in TERMS], "source"])
+        for source, part in source_slices(cache):
+            for i in range(part.start, part.stop):
+                per_actor = total[i].sum() / max(n_actors[i], 1)
+                writer.writerow([i - part.start, cache.scene_ids[i], int(n_actors[i]),
+                                 f"{total[i].sum():.4f}", f"{per_actor:.4f}",
+                                 *[f"{scores[k][i].sum():.4f}" for k in TERMS], source])
 
 
 def _render_worst(scores, cache, cfg, k: int, out_dir: str) -> list[str]:
