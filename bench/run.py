@@ -160,6 +160,7 @@ def case_config(args):
         max_actors=args.steps - 1,
         bptt_window=args.window or args.steps,
         batch_size=args.batch,
+        gn_groups=8,  # the reference's GroupNorm: both sides run the same mathematics
         rotate_augment=False,
         **({} if args.remat is None else {"remat": args.remat == "on"}),
     )

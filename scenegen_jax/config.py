@@ -46,7 +46,11 @@ class Config:
       max_actors: N, actor slots per scene (excluding the ego).
       hidden: ConvLSTM / backbone channels.
       backbone_layers: 3x3 conv layers in the backbone.
-      gn_groups: GroupNorm groups.
+      gn_groups: GroupNorm groups. The presets use one group per channel (the paper does not
+        give the count): with several channels per group, a channel whose mean falls below
+        its group's goes negative everywhere after the norm and dies behind the ReLU, and
+        with it the backbone's heading information (experiments/results/README.md,
+        session 14).
       num_mixtures: K, mixture components of box, heading and velocity (velocity has at
         least 2: the v = 0 point mass and one moving component).
       hard_negatives: bins in the training location normaliser (hard negative mining); at or
@@ -79,7 +83,7 @@ class Config:
     max_actors: int = 49
     hidden: int = 16
     backbone_layers: int = 5
-    gn_groups: int = 4
+    gn_groups: int = 16
     num_mixtures: int = 3
     hard_negatives: int = 512
     bptt_window: int = 25
@@ -226,7 +230,7 @@ PRESETS: dict[str, Config] = {
         m_per_px=0.25,
         max_actors=128,
         hidden=32,
-        gn_groups=8,
+        gn_groups=32,
         num_mixtures=10,
         hard_negatives=10_000,
         batch_size=16,
@@ -242,7 +246,7 @@ PRESETS: dict[str, Config] = {
         max_actors=39,
         bptt_window=20,
         hidden=16,
-        gn_groups=4,
+        gn_groups=16,
         num_mixtures=10,
         # The full softmax over the 4,096 bins: with 2,000 hard negatives (half the grid) the
         # location term stayed at flat logits in every run (experiments/results/README.md).
