@@ -97,3 +97,28 @@ def test_unfinished_saves_are_removed(tmp_path):
     c.save(init_state(CFG), force=True)
     c.close()
     assert sorted(os.listdir(ckpts)) == ["0"]
+
+
+def test_load_params_reads_the_parameters_alone(tiny_train_cache, tmp_path, caplog):
+    from scenegen_jax.workdir import load_params
+
+    workdir = str(tmp_path / "wd")
+    train(CFG, tiny_train_cache.path, workdir, 8, save_every=EVERY, keep=2, progress=False)
+    cfg, params, step = load_params(workdir)
+    assert cfg == CFG and step == 8
+    _assert_same(params, load_trained(workdir)[1].params)
+    assert int(load_params(workdir, 4)[2]) == 4
+    # Only the parameters are read and verified: a wrong optimizer checksum does not matter
+    # to them, a wrong parameter checksum makes the reader fall back a step.
+    path = os.path.join(workdir, "checkpoints", "8", CHECKSUM_FILE)
+    with open(path) as f:
+        sums = json.load(f)
+    opt = next(k for k in sums if k.startswith("['opt_state']"))
+    with open(path, "w") as f:
+        json.dump({**sums, opt: "0" * 64}, f)
+    assert load_params(workdir)[2] == 8
+    par = next(k for k in sums if k.startswith("['params']"))
+    with open(path, "w") as f:
+        json.dump({**sums, par: "0" * 64}, f)
+    assert load_params(workdir)[2] == 4
+    assert "arrays differ from their checksums" in caplog.text and par in caplog.text

@@ -26,7 +26,7 @@ from scenegen_jax.sampling.rollout import (
     DEFAULT_OPTIONS,
     Sample,
     SamplerOptions,
-    _pad_given,
+    pad_given,
     rollout,
 )
 from scenegen_jax.scene import NUM_CLASSES, Actors, empty_actors
@@ -189,7 +189,7 @@ def batch_inputs(cfg: Config, num_maps: int, given: Actors | None = None, caps=N
         given = jax.tree.map(jnp.asarray, given)
         if given.cls.ndim == 1:
             given = jax.tree.map(lambda x: jnp.broadcast_to(x, (num_maps, *x.shape)), given)
-        given = jax.vmap(lambda g: _pad_given(g, n))(given)
+        given = jax.vmap(lambda g: pad_given(g, n))(given)
     if caps is None:
         caps = jnp.full((num_maps, NUM_CLASSES), n, jnp.int32)
     caps = jnp.broadcast_to(jnp.asarray(caps, jnp.int32), (num_maps, NUM_CLASSES))

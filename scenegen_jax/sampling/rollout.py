@@ -256,7 +256,7 @@ def _place(key, params, model: Model, f, cls, log_probs, state: SamplerState, eg
     return actor, found, rejected
 
 
-def _pad_given(given: Actors | None, n: int) -> Actors:
+def pad_given(given: Actors | None, n: int) -> Actors:
     """Given actors padded (or created empty) to n slots; raises if more than n slots."""
     if given is None:
         return jax.tree.map(jnp.asarray, empty_actors(n))
@@ -302,7 +302,7 @@ def rollout(
     n = cfg.max_actors
     n_bins = cfg.grid_size * cfg.grid_size
     # Stable sort: canonical input is unchanged, anything else is put in canonical order.
-    given = canonical_order(_pad_given(given, n), cfg)
+    given = canonical_order(pad_given(given, n), cfg)
     n_given = jnp.sum(given.valid).astype(jnp.int32)
     caps = jnp.full((NUM_CLASSES,), n, jnp.int32) if caps is None else jnp.asarray(caps, jnp.int32)
     steps = jnp.asarray(options.heatmap_steps, jnp.int32).reshape(-1)
