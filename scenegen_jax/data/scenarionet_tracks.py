@@ -115,7 +115,7 @@ def _timestamps(scenario: Mapping) -> np.ndarray | None:
         return None
     try:
         arr = np.asarray(ts, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an int beyond float
         return None
     return arr if len(arr) >= 2 and np.all(np.isfinite(arr)) else None
 
