@@ -1026,3 +1026,18 @@ def test_os_system_global_is_refused_and_runs_nothing(tmp_path):
     with pytest.raises(UnsafePickleError, match=r"os\.system"):
         load_pickle(path)
     assert not marker.exists()
+
+
+def test_complex_numbers_are_refused_not_cast():
+    """A complex array where reals belong is an error naming the field; a cast to float would
+    drop the imaginary part silently (found by the fuzz tests)."""
+    path = os.path.join(WOMD_ROOT, "val", "8799c31b5be1f312.pkl")
+    scenario = sn.read_scenario(path)
+    tracks = dict(scenario["tracks"])
+    tid = next(iter(tracks))
+    state = dict(tracks[tid]["state"])
+    state["position"] = np.asarray(state["position"]).astype(np.complex128) * (1 + 1e-3j)
+    tracks[tid] = {**tracks[tid], "state": state}
+    with pytest.raises(ValueError, match="complex numbers") as e:
+        sn.frames_from_scenario({**scenario, "tracks": tracks}, path, stride=50)
+    assert path in str(e.value) and "position" in str(e.value)

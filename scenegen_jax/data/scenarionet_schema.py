@@ -68,10 +68,17 @@ def _get(d: Any, key: str, source: str, field: str) -> Any:
     return d[key]
 
 
+def _refuse_complex(value: Any, source: str, field: str) -> None:
+    """Complex numbers would lose their imaginary part, silently, in a cast to float."""
+    if np.iscomplexobj(value):
+        raise _err(source, field, "complex numbers where real ones belong")
+
+
 def _array(
     value: Any, source: str, field: str, ndim: int, min_cols: int = 0, dtype=np.float64
 ) -> np.ndarray:
     """A numeric array of `ndim` dims (at least `min_cols` columns); finiteness checked later."""
+    _refuse_complex(value, source, field)
     try:
         arr = np.asarray(value, dtype=dtype)
     except (TypeError, ValueError, OverflowError) as e:
@@ -84,6 +91,7 @@ def _array(
 
 def _series(value: Any, source: str, field: str) -> np.ndarray:
     """[T] float64 of a per-step scalar stored as [T] or [T, 1]."""
+    _refuse_complex(value, source, field)
     try:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError, OverflowError) as e:
