@@ -278,17 +278,21 @@ def _load_json(path: str) -> Any:
         return json.load(f)
 
 
+FRAME_ARRAYS = ("position", "size", "heading", "velocity", "ego_velocity", "ego_size",
+                "city_from_ego")
+
+
+def _assert_frame_finite(frame, where: str) -> None:
+    _assert_finite({k: getattr(frame, k) for k in FRAME_ARRAYS}, where)
+
+
 def _check_womd_frames(result: Any, where: str) -> None:
     if result is None:
         return
     frames, dropped = result
     assert isinstance(dropped, collections.Counter)
     for fr in frames:
-        _assert_finite(
-            {k: getattr(fr, k) for k in ("position", "size", "heading", "velocity",
-                                         "ego_velocity", "ego_size", "city_from_ego")},
-            where,
-        )
+        _assert_frame_finite(fr, where)
 
 
 # ---------------------------------------------------------------- Waymo GPUDrive JSON
@@ -334,11 +338,7 @@ def _check_imported(result: Any, where: str) -> None:
         return
     for imported in result:
         fr = imported.frame
-        _assert_finite(
-            {k: getattr(fr, k) for k in ("position", "size", "heading", "velocity",
-                                         "ego_velocity", "ego_size", "city_from_ego")},
-            where,
-        )
+        _assert_frame_finite(fr, where)
 
 
 @given(data=st.data(), which=st.sampled_from(WOMD_PKLS))
@@ -604,11 +604,7 @@ def _check_av2(result: Any, rows: int | None, where: str) -> None:
     frames, drops = result
     assert isinstance(drops, collections.Counter)
     for fr in frames:
-        _assert_finite(
-            {k: getattr(fr, k) for k in ("position", "size", "heading", "velocity",
-                                         "ego_velocity", "ego_size", "city_from_ego")},
-            where,
-        )
+        _assert_frame_finite(fr, where)
         for lane in fr.map.lanes:
             _assert_finite({"left": lane.left, "right": lane.right}, where)
         assert np.all(fr.size > 0) and np.all(fr.size <= MAX_SIZE_M), where
