@@ -3,7 +3,7 @@
 What differs between XLA:CPU and accelerators: which loops are compiled (XLA:CPU runs
 convolution gradients inside loops many times slower), the scorer's compiler options, how many
 calls run at once and how many scenes are vmapped together, the device mesh, and returning the
-compiler's freed host memory.
+compiler's freed host memory. Also where a multi-process job starts and which process writes.
 
 Concurrent calls: XLA:CPU runs calls made from different host threads side by side. One call
 at a time leaves a core idle whenever the program runs a small serial operation between its
@@ -81,8 +81,41 @@ def scoring_compiler_options() -> dict | None:
     }
 
 
+def start_distributed(
+    coordinator: str | None = None,
+    num_processes: int | None = None,
+    process_id: int | None = None,
+) -> None:
+    """Joins a multi-process JAX job (`jax.distributed.initialize`): one process per host, or
+    several on one machine. Without arguments JAX finds them itself (SLURM, Open MPI, Cloud
+    TPU; the coordinator also from JAX_COORDINATOR_ADDRESS); given, they run anywhere.
+    Afterwards `jax.devices()` lists every process's devices and `make_mesh` spans them all.
+    """
+    if (num_processes is None) != (process_id is None):
+        raise ValueError("--num-processes and --process-id go together")
+    if process_id is not None and not 0 <= process_id < num_processes:
+        raise ValueError(f"--process-id {process_id}: need 0 <= id < {num_processes}")
+    jax.distributed.initialize(
+        coordinator_address=coordinator, num_processes=num_processes, process_id=process_id
+    )
+
+
+def is_main_process() -> bool:
+    """Whether this is the process that writes shared files and draws progress bars."""
+    return jax.process_index() == 0
+
+
+def sync_processes(name: str) -> None:
+    """Waits until every process reaches the barrier `name` (nothing with one process)."""
+    if jax.process_count() > 1:
+        from jax.experimental import multihost_utils
+
+        multihost_utils.sync_global_devices(name)
+
+
 def make_mesh(devices=None) -> Mesh:
-    """A 1-D mesh with a `data` axis over all local (or given) devices."""
+    """A 1-D mesh with a `data` axis over all (or the given) devices; with several
+    processes, every process's devices."""
     devices = np.asarray(jax.devices() if devices is None else devices)
     return Mesh(devices, ("data",))
 

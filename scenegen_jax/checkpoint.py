@@ -8,6 +8,10 @@ loaded. In a training run (`heal=True`) a step that does not restore or verify i
 moved to `<checkpoints>.damaged/<step>-<time>` with a warning naming both paths, so that it
 neither blocks the save of the same step later nor takes one of the `keep` slots. Orbax's
 temporary folders left by a killed save are removed when a training run opens the folder.
+
+In a multi-process job every process saves and restores its part of the same checkpoint
+(orbax coordinates them), and process 0 alone writes the checksums and moves or removes
+folders.
 """
 
 from __future__ import annotations
@@ -22,6 +26,8 @@ import time
 import jax
 import numpy as np
 import orbax.checkpoint as ocp
+
+from scenegen_jax.backend import is_main_process, sync_processes
 
 log = logging.getLogger(__name__)
 CHECKSUM_FILE = "scenegen_sha256.json"
@@ -41,9 +47,10 @@ def tree_checksums(tree) -> dict[str, str]:
     return out
 
 
-def _abstract(x):
-    """Shape, dtype and a single-device sharding for restoring an array (or abstract array)."""
-    sharding = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+def _abstract(x, sharding=None):
+    """Shape, dtype and sharding (default: the first local device) for restoring an array
+    (or abstract array)."""
+    sharding = sharding or jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
     return jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding)
 
 
@@ -74,12 +81,12 @@ class Checkpointer:
         )
 
     def _remove_temporaries(self) -> None:
-        if not os.path.isdir(self.directory):
-            return
-        for name in sorted(os.listdir(self.directory)):
-            if TMP_MARKER in name:
-                log.warning("%s: removing an unfinished save (%s)", self.directory, name)
-                shutil.rmtree(os.path.join(self.directory, name), ignore_errors=True)
+        if is_main_process() and os.path.isdir(self.directory):
+            for name in sorted(os.listdir(self.directory)):
+                if TMP_MARKER in name:
+                    log.warning("%s: removing an unfinished save (%s)", self.directory, name)
+                    shutil.rmtree(os.path.join(self.directory, name), ignore_errors=True)
+        sync_processes("checkpoint temporaries removed")
 
     def save(self, state, force: bool = False) -> bool:
         """Saves a state (a NamedTuple with a `step` entry, e.g. `train.step.TrainState`) if
@@ -88,10 +95,13 @@ class Checkpointer:
         saved = self.manager.save(step, args=ocp.args.StandardSave(state._asdict()), force=force)
         if saved:
             self.manager.wait_until_finished()
-            path = os.path.join(self.directory, str(step), CHECKSUM_FILE)
-            with open(path + ".tmp", "w") as f:
-                json.dump(tree_checksums(state._asdict()), f)
-            os.replace(path + ".tmp", path)
+            sums = tree_checksums(state._asdict())
+            if is_main_process():
+                path = os.path.join(self.directory, str(step), CHECKSUM_FILE)
+                with open(path + ".tmp", "w") as f:
+                    json.dump(sums, f)
+                os.replace(path + ".tmp", path)
+            sync_processes(f"checksums of step {step} written")
         return saved
 
     def _verify(self, step: int, restored: dict) -> None:
@@ -116,12 +126,14 @@ class Checkpointer:
     def _set_aside(self, step: int) -> None:
         src = os.path.join(self.directory, str(step))
         dst = os.path.join(self.directory + ".damaged", f"{step}-{time.strftime('%Y%m%dT%H%M%S')}")
-        os.makedirs(os.path.dirname(dst), exist_ok=True)
-        os.rename(src, dst)
+        if is_main_process():
+            os.makedirs(os.path.dirname(dst), exist_ok=True)
+            os.rename(src, dst)
+            log.warning("%s: damaged checkpoint moved to %s", src, dst)
+        sync_processes(f"damaged step {step} set aside")
         self.manager.reload()
-        log.warning("%s: damaged checkpoint moved to %s", src, dst)
 
-    def restore_latest(self, template, step: int | None = None):
+    def restore_latest(self, template, step: int | None = None, sharding=None):
         """The newest checkpoint that restores cleanly and matches its checksums, or None when
         there is none.
 
@@ -130,10 +142,13 @@ class Checkpointer:
         restored alone (the others are not read) and returned as a dict, with `step` the
         checkpoint's step.
         With `step`, that checkpoint only (ValueError naming the saved steps if it is not
-        there; None if it does not restore).
+        there; None if it does not restore). `sharding`: where every restored array goes
+        (default: the first local device; a training run: replicated over its mesh).
         """
         whole = hasattr(template, "_asdict")
-        abstract = jax.tree.map(_abstract, template._asdict() if whole else dict(template))
+        abstract = jax.tree.map(
+            lambda x: _abstract(x, sharding), template._asdict() if whole else dict(template)
+        )
         if whole:
             args = ocp.args.StandardRestore(abstract)
         else:

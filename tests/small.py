@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 
 from scenegen_jax.config import get_config
@@ -41,3 +43,30 @@ def random_params(cfg, key):
     w = params["loc2_w"]
     params["loc2_w"] = jax.random.normal(loc_key, w.shape, w.dtype) / np.sqrt(w.shape[-2])
     return params
+
+
+def train_cmd(cache, workdir, steps, *extra):
+    """`scenegen train` of CFG's shapes on `cache` (saving every 2 steps) as a subprocess
+    command line, with `extra` options."""
+    overrides = ["max_actors=15", "bptt_window=8", "batch_size=2", "hidden=8", "gn_groups=2"]
+    return [
+        sys.executable,
+        "-m",
+        "scenegen_jax.cli",
+        "train",
+        "--config",
+        "tiny",
+        "--data",
+        cache,
+        "--workdir",
+        workdir,
+        "--steps",
+        str(steps),
+        "--save-every",
+        "2",
+        "--log-every",
+        "2",
+        *extra,
+        "--set",
+        *overrides,
+    ]

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from small import CFG, random_params, two_small_scenes
+from small import CFG, random_params, train_cmd, two_small_scenes
 
 from scenegen_jax.likelihood.batch import Batch, check_batch, crop_batch, gather_batch
 from scenegen_jax.likelihood.unroll import unroll_terms
@@ -216,34 +216,10 @@ def test_nan_batch_is_rejected_before_the_optimizer(tiny_train_cache, small_scen
 # ------------------------------------------------------------ subprocess tests
 
 
-def _train_cmd(cache, workdir, steps):
-    overrides = ["max_actors=15", "bptt_window=8", "batch_size=2", "hidden=8", "gn_groups=2"]
-    return [
-        sys.executable,
-        "-m",
-        "scenegen_jax.cli",
-        "train",
-        "--config",
-        "tiny",
-        "--data",
-        cache,
-        "--workdir",
-        workdir,
-        "--steps",
-        str(steps),
-        "--save-every",
-        "2",
-        "--log-every",
-        "2",
-        "--set",
-        *overrides,
-    ]
-
-
-def _params(workdir):
+def _params(workdir, step=None):
     from scenegen_jax.train.loop import load_trained
 
-    cfg, state = load_trained(workdir)
+    cfg, state = load_trained(workdir, step)
     return int(state.step), jax.tree.leaves(state.params)
 
 
@@ -292,11 +268,11 @@ def test_killed_run_resumes_exactly(tiny_train_cache, tmp_path):
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
     steps = 10
     full = str(tmp_path / "full")
-    subprocess.run(_train_cmd(cache, full, steps), check=True, env=env, capture_output=True)
+    subprocess.run(train_cmd(cache, full, steps), check=True, env=env, capture_output=True)
 
     killed = str(tmp_path / "killed")
     proc = subprocess.Popen(
-        _train_cmd(cache, killed, steps),
+        train_cmd(cache, killed, steps),
         env=env,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
@@ -313,7 +289,7 @@ def test_killed_run_resumes_exactly(tiny_train_cache, tmp_path):
     assert proc.returncode == -signal.SIGKILL
     step_at_kill, _ = _params(killed)
     assert 4 <= step_at_kill < steps
-    subprocess.run(_train_cmd(cache, killed, steps), check=True, env=env, capture_output=True)
+    subprocess.run(train_cmd(cache, killed, steps), check=True, env=env, capture_output=True)
 
     s_full, p_full = _params(full)
     s_killed, p_killed = _params(killed)

@@ -12,11 +12,13 @@ from scenegen_jax.config import PRESETS, get_config
 def cmd_train(args) -> None:
     from scenegen_jax.train.loop import train
 
+    from scenegen_jax.backend import is_main_process, start_distributed
+
     cfg = get_config(args.config, **overrides(args.set))
     if args.distributed:
-        import jax
-
-        jax.distributed.initialize()
+        start_distributed(args.coordinator, args.num_processes, args.process_id)
+    elif args.coordinator or args.num_processes is not None or args.process_id is not None:
+        raise ValueError("--coordinator, --num-processes and --process-id need --distributed")
     state = train(
         cfg,
         args.data,
@@ -29,7 +31,8 @@ def cmd_train(args) -> None:
         init_from=args.init_from,
         weights=args.weights,
     )
-    print(json.dumps({"workdir": args.workdir, "step": int(state.step)}))
+    if is_main_process():
+        print(json.dumps({"workdir": args.workdir, "step": int(state.step)}))
 
 
 def cmd_export_model(args) -> None:
@@ -76,8 +79,14 @@ def add_parsers(sub) -> None:
     sp.add_argument(
         "--distributed",
         action="store_true",
-        help="multi-host: call jax.distributed.initialize() first",
+        help="multi-process training (jax.distributed): run one process per host with the "
+        "same arguments; under SLURM, Open MPI or on Cloud TPU JAX finds the others itself",
     )
+    sp.add_argument("--coordinator", metavar="HOST:PORT",
+                    help="with --distributed: process 0's address (default: "
+                    "JAX_COORDINATOR_ADDRESS or the cluster's)")
+    sp.add_argument("--num-processes", type=int, metavar="N", help="with --distributed")
+    sp.add_argument("--process-id", type=int, metavar="I", help="with --distributed: 0..N-1")
     sp.add_argument("--set", nargs="*", metavar="FIELD=VALUE", help="config overrides")
     sp.set_defaults(func=cmd_train)
 

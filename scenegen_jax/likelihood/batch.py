@@ -34,9 +34,38 @@ def gather_batch(cache: Cache | CacheUnion, indices: np.ndarray, cfg: Config) ->
     return Batch(canvas=canvas, actors=actors, ego=cache.ego(indices))
 
 
-def to_device(batch: Batch, sharding=None) -> Batch:
-    """Puts a host batch on device(s), sharded along the batch axis if `sharding` is given."""
-    return jax.tree.map(lambda x: jax.device_put(x, sharding), batch)
+def local_rows(sharding, batch_size: int) -> slice:
+    """The rows of a global batch of `batch_size` sharded by `sharding` (along its first
+    axis) that this process's devices hold: all of them with one process. A process loads
+    only these (`gather_batch`) and `to_device` assembles the global batch from every
+    process's part."""
+    devices = len(sharding.device_set)
+    if batch_size % devices:
+        raise ValueError(f"batch_size {batch_size} is not divisible by {devices} devices")
+    spans = sorted(
+        idx[0].indices(batch_size)[:2]
+        for idx in sharding.addressable_devices_indices_map((batch_size,)).values()
+    )
+    lo, hi = spans[0][0], spans[-1][1]
+    if any(a[1] != b[0] and a != b for a, b in zip(spans, spans[1:])):
+        raise ValueError(f"this process's rows of the batch are not contiguous: {spans}")
+    return slice(lo, hi)
+
+
+def to_device(batch: Batch, sharding=None, batch_size: int | None = None) -> Batch:
+    """Puts a host batch on device(s), sharded along the batch axis if `sharding` is given.
+
+    With several processes, `batch` holds this process's `local_rows` of a global batch of
+    `batch_size` scenes, and every process calls this with its own part.
+    """
+    if sharding is None or sharding.is_fully_addressable:
+        return jax.tree.map(lambda x: jax.device_put(x, sharding), batch)
+    return jax.tree.map(
+        lambda x: jax.make_array_from_process_local_data(
+            sharding, x, (batch_size,) + x.shape[1:]
+        ),
+        batch,
+    )
 
 
 def check_batch(batch: Batch, scene_ids: list[str]) -> None:

@@ -16,12 +16,12 @@ from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 from tqdm import tqdm
 
-from scenegen_jax.backend import make_mesh
+from scenegen_jax.backend import is_main_process, make_mesh
 from scenegen_jax.checkpoint import Checkpointer
 from scenegen_jax.config import Config
 from scenegen_jax.data.union import CacheUnion, load_union
 from scenegen_jax.distributions import TERMS
-from scenegen_jax.likelihood.batch import check_batch, gather_batch, to_device
+from scenegen_jax.likelihood.batch import check_batch, gather_batch, local_rows, to_device
 from scenegen_jax.likelihood.terms import VEHICLE_TERMS
 from scenegen_jax.scene import CLASS_NAMES
 from scenegen_jax.train.data import resolve_weights, union_indices
@@ -35,6 +35,15 @@ from scenegen_jax.workdir import CHECKPOINTS, CONFIG_FILE, load_params, load_wor
 
 log = logging.getLogger(__name__)
 DATA_FILE = "data.json"
+
+
+def _write_atomic(path: str, text: str) -> None:
+    """Writes `text` to `path` whole or not at all (other processes may read it meanwhile);
+    in a multi-process job only process 0 writes."""
+    if is_main_process():
+        with open(path + ".tmp", "w") as f:
+            f.write(text)
+        os.replace(path + ".tmp", path)
 
 
 def save_or_check_config(workdir: str, cfg: Config) -> None:
@@ -51,8 +60,7 @@ def save_or_check_config(workdir: str, cfg: Config) -> None:
                 f"--workdir or the same config and overrides"
             )
         return
-    with open(path, "w") as f:
-        f.write(cfg.to_json())
+    _write_atomic(path, cfg.to_json())
 
 
 def data_record(union: CacheUnion, weights) -> dict:
@@ -77,8 +85,7 @@ def save_or_check_data(workdir: str, union: CacheUnion, weights=None) -> dict:
     path = os.path.join(workdir, DATA_FILE)
     record = data_record(union, weights)
     if not os.path.exists(path):
-        with open(path, "w") as f:
-            json.dump(record, f, indent=1)
+        _write_atomic(path, json.dumps(record, indent=1))
         return record
     with open(path) as f:
         saved = json.load(f)
@@ -100,8 +107,8 @@ def save_or_check_data(workdir: str, union: CacheUnion, weights=None) -> dict:
 
 def drop_metrics_after(path: str, step: int) -> None:
     """Removes the rows of steps after `step` from a metrics file (a resumed run replays
-    them), so that it keeps one row per logged step."""
-    if not os.path.isfile(path):
+    them), so that it keeps one row per logged step (process 0's file)."""
+    if not is_main_process() or not os.path.isfile(path):
         return
     with open(path) as f:
         lines = f.readlines()
@@ -158,6 +165,12 @@ def train(
     together (`CacheUnion`); each scene is drawn from cache i with probability
     `weights[i]` / sum(weights) (default: uniform over all scenes). The list and the weights
     are kept in WORKDIR/data.json, and a resume must use the same (`save_or_check_data`).
+
+    In a multi-process job (`backend.start_distributed`) every process runs this with the
+    same arguments: the mesh spans every process's devices, each process reads only its
+    `local_rows` of each global batch of `cfg.batch_size` scenes, all save and restore the
+    one checkpoint, and process 0 alone writes config.json, data.json, metrics.jsonl and
+    the progress bar.
     """
     cache = load_union(data_dir, cfg)
     shares = resolve_weights(cache.sizes, weights)
@@ -167,15 +180,17 @@ def train(
     step_fn = None  # compiled for the first batch's shapes (every batch has the same)
     data_sharding = NamedSharding(mesh, P("data"))
     ckpt = Checkpointer(os.path.join(workdir, CHECKPOINTS), save_every, keep, heal=True)
+    rows = local_rows(data_sharding, cfg.batch_size)
+    replicated = NamedSharding(mesh, P())
     state = init_state(cfg)
-    restored = ckpt.restore_latest(state)
+    restored = ckpt.restore_latest(state, sharding=replicated)
     if restored is not None:
         state = restored
     elif init_from is not None:
         params = warm_start(state.params, load_params(init_from)[1], init_from)
         state = state._replace(params=params, opt_state=make_optimizer(cfg).init(params))
         log.info("starting from the parameters of %s", init_from)
-    state = jax.device_put(state, NamedSharding(mesh, P()))
+    state = jax.device_put(state, replicated)
     start = int(state.step)
     metrics_path = os.path.join(workdir, "metrics.jsonl")
     drop_metrics_after(metrics_path, start)
@@ -187,15 +202,15 @@ def train(
     )
     bar = tqdm(
         total=steps, initial=start, desc="train", unit="step", file=sys.stderr,
-        disable=not progress, bar_format=budget,
+        disable=not (progress and is_main_process()), bar_format=budget,
     )
     acc, t0, n0 = None, time.perf_counter(), start
     t_start = t0
     for step in range(start, steps):
-        indices = union_indices(cache, shares, cfg.batch_size, cfg.seed, step)
+        indices = union_indices(cache, shares, cfg.batch_size, cfg.seed, step)[rows]
         host = gather_batch(cache, indices, cfg)
         check_batch(host, [cache.scene_name(i) for i in indices])
-        batch = to_device(host, data_sharding)
+        batch = to_device(host, data_sharding, cfg.batch_size)
         if step_fn is None:
             step_fn = compile_train_step(cfg, state, batch, mesh)
         state, stats = step_fn(state, batch)
@@ -208,8 +223,9 @@ def train(
                 raise FloatingPointError(f"step {done}: loss is {float(acc['loss'])}; stopping")
             elapsed = time.perf_counter() - t0
             row = {"step": done, **summarize(acc), "steps_per_s": (done - n0) / elapsed}
-            with open(metrics_path, "a") as f:
-                f.write(json.dumps(row) + "\n")
+            if is_main_process():
+                with open(metrics_path, "a") as f:
+                    f.write(json.dumps(row) + "\n")
             bar.set_postfix(loss=f"{row['loss']:.2f}", steps_s=f"{row['steps_per_s']:.2f}")
             acc, t0, n0 = None, time.perf_counter(), done
         out_of_time = max_seconds is not None and time.perf_counter() - t_start > max_seconds
