@@ -105,6 +105,15 @@ def is_main_process() -> bool:
     return jax.process_index() == 0
 
 
+def process_share(n: int) -> range:
+    """This process's contiguous share of n items (scenes to score or sample): equal parts
+    in process order, the first n mod P processes one item more; all of them with one."""
+    count, index = jax.process_count(), jax.process_index()
+    size, extra = divmod(n, count)
+    start = index * size + min(index, extra)
+    return range(start, start + size + (index < extra))
+
+
 def sync_processes(name: str) -> None:
     """Waits until every process reaches the barrier `name` (nothing with one process)."""
     if jax.process_count() > 1:

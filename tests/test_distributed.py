@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import re
 import socket
 import subprocess
+import sys
 import time
 
 import jax
@@ -14,6 +16,7 @@ import numpy as np
 import pytest
 from small import train_cmd
 
+from scenegen_jax.data.safe_pickle import load_pickle
 from scenegen_jax.train.loop import load_trained
 from scenegen_jax.train.step import init_state
 
@@ -42,7 +45,7 @@ def _wait(procs, logs, timeout=240):
         rc = p.wait(timeout=timeout)
         if rc:
             text = "\n".join(f.read_text()[-1500:] for f in sorted(logs.iterdir()))
-            raise AssertionError(f"a training process exited with {rc}:\n{text}")
+            raise AssertionError(f"a process exited with {rc}:\n{text}")
 
 
 # Conv biases followed by a GroupNorm (which removes them) and the location logits' bias
@@ -106,3 +109,63 @@ def test_two_process_training_equals_one_process_and_resumes(tiny_train_cache, t
     # Process 0 alone writes the metrics: one row per logged step, replayed rows dropped.
     rows = [json.loads(line)["step"] for line in (pair / "metrics.jsonl").read_text().splitlines()]
     assert rows == list(range(2, at_kill + 3, 2))
+
+
+def _launch(argv, env, logs, processes=1):
+    """`scenegen ARGV` as one process, or as `processes` joined by --distributed."""
+    port = _free_port()
+    procs = []
+    for i in range(processes):
+        cmd = [sys.executable, "-m", "scenegen_jax.cli", *argv]
+        if processes > 1:
+            cmd += ["--distributed", "--coordinator", f"127.0.0.1:{port}", "--num-processes",
+                    str(processes), "--process-id", str(i)]
+        log = open(logs / f"{argv[0]}_{processes}_{i}_{len(list(logs.iterdir()))}.log", "w")
+        procs.append(subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT))
+    _wait(procs, logs)
+
+
+def _read_csv(path):
+    with open(path) as f:
+        rows = list(csv.reader(f))
+    return rows[0], [r[:2] + [float(x) for x in r[2:-1]] + r[-1:] for r in rows[1:]]
+
+
+@pytest.mark.slow
+def test_score_and_sample_on_two_devices_and_two_processes(tiny_train_cache, tmp_path):
+    """`score` and `sample` give the same files on one device, on two devices of one
+    process, and split over two processes (each its share of the scenes, merged by
+    process 0)."""
+    cache = tiny_train_cache.path
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    workdir = str(tmp_path / "model")
+    subprocess.run(train_cmd(cache, workdir, 2), check=True, env=env, capture_output=True)
+    runs = {"one": (env, 1),
+            "two_devices": ({**env, "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}, 1),
+            "two_processes": (env, 2)}
+    for name, (run_env, processes) in runs.items():
+        out = tmp_path / name
+        _launch(["score", "--workdir", workdir, "--data", cache, "--out", str(out / "s.csv"),
+                 "--batch-size", "4"], run_env, logs, processes)
+        _launch(["sample", "--workdir", workdir, "--data", cache, "--num", "5", "--seed", "3",
+                 "--batch-size", "2", "--out", str(out / "samples")], run_env, logs, processes)
+    header, want = _read_csv(tmp_path / "one" / "s.csv")
+    assert len(want) == len(tiny_train_cache)
+    want_lines = (tmp_path / "one" / "samples" / "scenes.jsonl").read_text().splitlines()
+    assert len(want_lines) == 5
+    for name in ("two_devices", "two_processes"):
+        got_header, got = _read_csv(tmp_path / name / "s.csv")
+        assert got_header == header and len(got) == len(want)
+        for a, b in zip(want, got, strict=True):
+            assert a[:3] == b[:3] and a[-1] == b[-1]
+            np.testing.assert_allclose(a[3:-1], b[3:-1], rtol=1e-4, atol=2e-4)
+        samples = tmp_path / name / "samples"
+        assert samples.joinpath("scenes.jsonl").read_text().splitlines() == want_lines
+        assert sorted(p.name for p in samples.iterdir()) == ["png", "scenarionet", "scenes.jsonl"]
+        assert len(list(samples.joinpath("png").iterdir())) == 5
+        index = load_pickle(samples / "scenarionet" / "dataset_summary.pkl")
+        want_index = load_pickle(tmp_path / "one" / "samples" / "scenarionet" /
+                                 "dataset_summary.pkl")
+        assert list(index) == list(want_index) and len(index) == 5

@@ -1,7 +1,10 @@
-"""What several subcommands share: `--set FIELD=VALUE` overrides, and the model of
-`--pretrained NAME|DIR` or `--workdir` (`--step`)."""
+"""What several subcommands share: `--set FIELD=VALUE` overrides, the model of
+`--pretrained NAME|DIR` or `--workdir` (`--step`), and multi-process runs (`--distributed`)
+with the merge of the processes' parts of an output."""
 
 from __future__ import annotations
+
+import os
 
 
 def overrides(pairs: list[str]) -> dict[str, str]:
@@ -45,3 +48,55 @@ def add_model_args(sp) -> None:
         "written by `scenegen export-model`",
     )
     sp.add_argument("--step", type=int, help="checkpoint step of --workdir (default: the latest)")
+
+
+def add_distributed_args(sp, what: str) -> None:
+    """`--distributed [--coordinator HOST:PORT --num-processes N --process-id I]`."""
+    sp.add_argument(
+        "--distributed",
+        action="store_true",
+        help=f"multi-process {what} (jax.distributed): run one process per host with the "
+        "same arguments; under SLURM, Open MPI or on Cloud TPU JAX finds the others itself",
+    )
+    sp.add_argument("--coordinator", metavar="HOST:PORT",
+                    help="with --distributed: process 0's address (default: "
+                    "JAX_COORDINATOR_ADDRESS or the cluster's)")
+    sp.add_argument("--num-processes", type=int, metavar="N", help="with --distributed")
+    sp.add_argument("--process-id", type=int, metavar="I", help="with --distributed: 0..N-1")
+
+
+def start_distributed(args) -> None:
+    """Joins the multi-process job of `--distributed` (nothing without it)."""
+    from scenegen_jax import backend
+
+    if args.distributed:
+        backend.start_distributed(args.coordinator, args.num_processes, args.process_id)
+    elif args.coordinator or args.num_processes is not None or args.process_id is not None:
+        raise ValueError("--coordinator, --num-processes and --process-id need --distributed")
+
+
+def merge_parts(path: str, arrays: dict):
+    """With several processes: each writes its part of per-scene `arrays` (concatenated
+    along axis 0 in process order) to PATH.part-I-of-N.npz; process 0 reads them all back,
+    removes them and returns the whole; the others return None. With one process: `arrays`.
+    """
+    import jax
+    import numpy as np
+
+    from scenegen_jax.backend import sync_processes
+
+    count, index = jax.process_count(), jax.process_index()
+    if count == 1:
+        return arrays
+    part = lambda i: f"{path}.part-{i:05d}-of-{count:05d}.npz"  # noqa: E731
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    np.savez(part(index), **arrays)
+    sync_processes(f"parts of {path} written")
+    if index:
+        return None
+    parts = []
+    for i in range(count):
+        with np.load(part(i), allow_pickle=False) as f:
+            parts.append({k: f[k] for k in f.files})
+        os.remove(part(i))
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}

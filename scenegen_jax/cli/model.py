@@ -5,20 +5,16 @@ from __future__ import annotations
 
 import json
 
-from scenegen_jax.cli.common import overrides
+from scenegen_jax.cli.common import add_distributed_args, overrides, start_distributed
 from scenegen_jax.config import PRESETS, get_config
 
 
 def cmd_train(args) -> None:
+    from scenegen_jax.backend import is_main_process
     from scenegen_jax.train.loop import train
 
-    from scenegen_jax.backend import is_main_process, start_distributed
-
     cfg = get_config(args.config, **overrides(args.set))
-    if args.distributed:
-        start_distributed(args.coordinator, args.num_processes, args.process_id)
-    elif args.coordinator or args.num_processes is not None or args.process_id is not None:
-        raise ValueError("--coordinator, --num-processes and --process-id need --distributed")
+    start_distributed(args)
     state = train(
         cfg,
         args.data,
@@ -76,17 +72,7 @@ def add_parsers(sub) -> None:
         help="a fresh run starts from this workdir's trained parameters (fresh optimizer); "
         "a model without map layers can be extended with them",
     )
-    sp.add_argument(
-        "--distributed",
-        action="store_true",
-        help="multi-process training (jax.distributed): run one process per host with the "
-        "same arguments; under SLURM, Open MPI or on Cloud TPU JAX finds the others itself",
-    )
-    sp.add_argument("--coordinator", metavar="HOST:PORT",
-                    help="with --distributed: process 0's address (default: "
-                    "JAX_COORDINATOR_ADDRESS or the cluster's)")
-    sp.add_argument("--num-processes", type=int, metavar="N", help="with --distributed")
-    sp.add_argument("--process-id", type=int, metavar="I", help="with --distributed: 0..N-1")
+    add_distributed_args(sp, "training")
     sp.add_argument("--set", nargs="*", metavar="FIELD=VALUE", help="config overrides")
     sp.set_defaults(func=cmd_train)
 

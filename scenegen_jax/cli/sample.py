@@ -8,7 +8,12 @@ import sys
 
 from tqdm import tqdm
 
-from scenegen_jax.cli.common import add_model_args, load_model
+from scenegen_jax.cli.common import (
+    add_distributed_args,
+    add_model_args,
+    load_model,
+    start_distributed,
+)
 from scenegen_jax.config import Config
 
 
@@ -55,9 +60,19 @@ def write_sampled(out: str, scene, cache, cfg: Config, seed: int, heatmap_steps)
 
 def cmd_sample(args) -> None:
     """Samples scenes on the maps and egos of cache scenes; writes JSON lines, ScenarioNet
-    pickles, PNGs and (with --heatmaps) per-step location heatmaps."""
+    pickles, PNGs and (with --heatmaps) per-step location heatmaps. With --distributed each
+    process samples its share of the scenes and writes their files; process 0 then joins
+    the JSON lines and indexes the ScenarioNet folder."""
+    import jax
+
+    from scenegen_jax.backend import is_main_process, process_share, sync_processes
     from scenegen_jax.data.cache import load_cache
-    from scenegen_jax.data.scenarionet import scenario_from_frame, write_dataset
+    from scenegen_jax.data.scenarionet import (
+        index_dataset,
+        scenario_file_name,
+        scenario_from_frame,
+        write_dataset,
+    )
     from scenegen_jax.sampling import HEATMAP_STEPS, SamplerOptions, frame_from_sample
     from scenegen_jax.sampling.batch import sample_on_cache
     from scenegen_jax.sampling.export import read_given
@@ -67,6 +82,7 @@ def cmd_sample(args) -> None:
         raise SystemExit("--num and --batch-size must be >= 1")
     if args.proposals is not None and args.proposals < 1:
         raise SystemExit("--proposals must be >= 1")
+    start_distributed(args)
     cfg, params, _ = load_model(args)
     cache = load_cache(args.data)
     cache.check_config(cfg)
@@ -83,13 +99,17 @@ def cmd_sample(args) -> None:
     for sub_dir in ("png", "scenarionet") + (("heatmaps",) if steps else ()):
         os.makedirs(os.path.join(out, sub_dir), exist_ok=True)
     options = SamplerOptions(proposals=args.proposals, heatmap_steps=steps)
+    share, parts = process_share(args.num), jax.process_count()
     scenes = sample_on_cache(params, cfg, cache, args.num, args.seed, indices=indices,
                              given=given, caps=parse_caps(args.cap, cfg),
-                             batch_size=args.batch_size, options=options)
+                             batch_size=args.batch_size, options=options, scenes=share)
     scenarios, counts = [], dict.fromkeys(CLASS_NAMES, 0)
+    jsonl_path = os.path.join(out, "scenes.jsonl")
+    part_of = lambda i: f"{jsonl_path}.part-{i:05d}-of-{parts:05d}"  # noqa: E731
     with (
-        open(os.path.join(out, "scenes.jsonl"), "w") as jsonl,
-        tqdm(total=args.num, desc="sample", unit="scene", file=sys.stderr) as bar,
+        open(jsonl_path if parts == 1 else part_of(jax.process_index()), "w") as jsonl,
+        tqdm(total=len(share), desc="sample", unit="scene", file=sys.stderr,
+             disable=not is_main_process()) as bar,
     ):
         for scene in scenes:
             row = write_sampled(out, scene, cache, cfg, args.seed, steps)
@@ -100,7 +120,24 @@ def cmd_sample(args) -> None:
                                       city_from_ego=cache.city_from_ego[scene.map_index])
             scenarios.append(scenario_from_frame(frame, row["scene"]))
             bar.update(1)
-    write_dataset(scenarios, os.path.join(out, "scenarionet"))
+    write_dataset(scenarios, os.path.join(out, "scenarionet"), index=parts == 1)
+    if parts > 1:
+        sync_processes(f"samples of {out} written")
+        if not is_main_process():
+            return
+        counts = dict.fromkeys(CLASS_NAMES, 0)
+        names = []
+        with open(jsonl_path, "w") as jsonl:
+            for i in range(parts):
+                with open(part_of(i)) as f:
+                    for line in f:
+                        jsonl.write(line)
+                        row = json.loads(line)
+                        names.append(scenario_file_name({"id": row["scene"]}))
+                        for r in row["actors"]:
+                            counts[r["class"]] += 1
+                os.remove(part_of(i))
+        index_dataset(os.path.join(out, "scenarionet"), names)
     print(json.dumps({"out": out, "scenes": args.num, "actors": counts}))
 
 
@@ -108,6 +145,7 @@ def add_parsers(sub) -> None:
     """Registers this module's subcommands."""
     sp = sub.add_parser("sample", help="sample new scenes on the maps of cache scenes")
     add_model_args(sp)
+    add_distributed_args(sp, "sampling")
     sp.add_argument("--data", required=True, help="cache whose maps and egos condition the scenes")
     sp.add_argument("--num", type=int, required=True, help="scenes to sample")
     sp.add_argument("--out", required=True, help="output directory")

@@ -6,13 +6,22 @@ import json
 import os
 import sys
 
-from scenegen_jax.cli.common import add_model_args, load_model
+from scenegen_jax.cli.common import (
+    add_distributed_args,
+    add_model_args,
+    load_model,
+    merge_parts,
+    start_distributed,
+)
 
 
 def cmd_score(args) -> None:
-
+    """Scores every scene of the --data caches; with --distributed each process scores its
+    share and process 0 writes the outputs of all."""
+    import jax
     import numpy as np
 
+    from scenegen_jax.backend import is_main_process, process_share
     from scenegen_jax.data.union import load_union
     from scenegen_jax.eval.nll import (
         score_cache,
@@ -25,9 +34,18 @@ def cmd_score(args) -> None:
         raise SystemExit("--top-k K needs K >= 0 and --render DIR")
     if args.batch_size < 1:
         raise SystemExit(f"--batch-size must be >= 1, got {args.batch_size}")
+    start_distributed(args)
     cfg, params, _ = load_model(args)
     cache = load_union(args.data, cfg)  # every --data cache, its scenes one after another
-    scores = score_cache(params, cache, cfg, batch_size=args.batch_size)
+    share = process_share(len(cache))  # with several processes: its share of the scenes
+    if not share:
+        raise ValueError(f"{len(cache)} scenes cannot be shared by {jax.process_count()} "
+                         "processes")
+    scores = score_cache(params, cache, cfg, batch_size=args.batch_size, scenes=share,
+                         progress=is_main_process())
+    scores = merge_parts(args.out, scores)
+    if scores is None:  # not process 0, which writes the outputs
+        return
     write_scores_csv(args.out, scores, cache)
     summary = summarize_scores(scores)
     summary["by_source"] = summarize_by_source(scores, cache)
@@ -136,6 +154,7 @@ def add_parsers(sub) -> None:
     """Registers this module's subcommands."""
     sp = sub.add_parser("score", help="NLL of real scenes under a trained model")
     add_model_args(sp)
+    add_distributed_args(sp, "scoring")
     sp.add_argument("--data", required=True, nargs="+", metavar="CACHE",
                     help="cache directories to score (summary also per source)")
     sp.add_argument("--out", required=True, help="CSV, one row per scene (with its source)")

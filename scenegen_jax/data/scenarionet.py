@@ -27,7 +27,8 @@ VectorMap cannot hold are counted as "map:<TYPE>". Nothing is dropped silently; 
 problems (missing tracks or SDC, wrong shapes, NaN in the SDC or in map geometry) raise
 ValueError naming the file and the field.
 
-Export (`scenario_from_frame`, `write_scenario`, `write_dataset`, in `scenarionet_export`)
+Export (`scenario_from_frame`, `write_scenario`, `write_dataset`, `index_dataset`, in
+`scenarionet_export`)
 writes a one-step scenario in the ego frame, with `scenegen_*` extras that take precedence on
 import, so export -> import is lossless up to float32 rounding of tracks. Files from real
 converters carry only the standard keys; their maps are read as described in
@@ -54,6 +55,7 @@ import numpy as np
 
 from scenegen_jax.data.safe_pickle import load_pickle
 from scenegen_jax.data.scenarionet_export import (
+    index_dataset,
     map_features_from_vector_map,
     scenario_file_name,
     scenario_from_frame,
@@ -122,6 +124,7 @@ __all__ = [
     "VELOCITY_MISMATCH_REL_ERR",
     "ImportedFrame",
     "frames_from_scenario",
+    "index_dataset",
     "map_features_from_vector_map",
     "map_from_features",
     "read_scenario",

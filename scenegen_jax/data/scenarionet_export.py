@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from scenegen_jax import __version__
-from scenegen_jax.data.safe_pickle import dump_pickle
+from scenegen_jax.data.safe_pickle import dump_pickle, load_pickle
 from scenegen_jax.data.scenarionet_schema import (
     LINE_TYPE_FROM_MARK,
     MAPPING_FILE,
@@ -287,8 +287,11 @@ def scenario_file_name(scenario: Mapping) -> str:
     return f"sd_{safe}.pkl"
 
 
-def write_dataset(scenarios: Sequence[dict], directory: str | os.PathLike) -> list[Path]:
-    """Writes scenarios plus the `dataset_summary.pkl` / `dataset_mapping.pkl` MetaDrive reads.
+def write_dataset(scenarios: Sequence[dict], directory: str | os.PathLike,
+                  index: bool = True) -> list[Path]:
+    """Writes scenarios plus the `dataset_summary.pkl` / `dataset_mapping.pkl` MetaDrive reads
+    (with `index`; else `index_dataset` writes them later, e.g. once every process of a
+    multi-process run has written its scenarios).
 
     Returns the scenario file paths. Raises ValueError on duplicate file names.
     """
@@ -301,8 +304,18 @@ def write_dataset(scenarios: Sequence[dict], directory: str | os.PathLike) -> li
     for scenario, name in zip(scenarios, names, strict=True):
         write_scenario(scenario, directory / name)
         paths.append(directory / name)
-    dump_pickle(
-        {n: s["metadata"] for n, s in zip(names, scenarios, strict=True)}, directory / SUMMARY_FILE
-    )
-    dump_pickle({n: "" for n in names}, directory / MAPPING_FILE)
+    if index:
+        _write_index(directory, {n: s["metadata"] for n, s in zip(names, scenarios, strict=True)})
     return paths
+
+
+def _write_index(directory: Path, metadata: dict[str, Any]) -> None:
+    dump_pickle(metadata, directory / SUMMARY_FILE)
+    dump_pickle(dict.fromkeys(metadata, ""), directory / MAPPING_FILE)
+
+
+def index_dataset(directory: str | os.PathLike, names: Sequence[str]) -> None:
+    """Writes the summary and mapping of the scenario files `names` (in that order) already
+    in `directory`, reading their metadata back (`safe_pickle.load_pickle`)."""
+    directory = Path(directory)
+    _write_index(directory, {n: load_pickle(directory / n)["metadata"] for n in names})

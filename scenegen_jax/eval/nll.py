@@ -48,33 +48,34 @@ def _jitted_scorer(cfg: Config, mesh):
 
 
 def score_cache(params, cache: Cache, cfg: Config, batch_size: int = 8, progress: bool = True,
-                workers: int | None = None):
-    """Scores every scene of a cache.
+                workers: int | None = None, scenes: range | None = None):
+    """Scores every scene of a cache (or the `scenes` range of them), on every local device.
 
     Each batch of `batch_size` scenes runs as `workers` concurrent calls on equal parts of
     it (`backend.concurrent_map`; default one per core on CPU, 1 on accelerators); every
     scene's scores are its own, whatever the batching.
 
     Returns:
-      dict with per-step arrays over all scenes: term -> [S, T] NLL (nats), "step_valid"
+      dict with per-step arrays over the scenes: term -> [S, T] NLL (nats), "step_valid"
       [S, T], "step_cls" [S, T] (STOP at the stop step).
     """
-    mesh = make_mesh()
+    mesh = make_mesh(jax.local_devices())  # with several processes: this one's devices
     workers = default_workers() if workers is None else workers
     per_call = max(batch_size // (workers * mesh.size), 1) * mesh.size
     fn = _jitted_scorer(cfg.inference(), mesh)  # one program per model, not per run config
     params = jax.device_put(params, NamedSharding(mesh, P()))
-    n = len(cache)
+    scenes = range(len(cache)) if scenes is None else scenes
+    n = scenes.stop
 
     def call(start):
         idx = np.arange(start, start + per_call)
         real = idx < n
-        idx = np.where(real, idx, 0)  # pad the last call with scene 0, dropped below
+        idx = np.where(real, idx, scenes.start)  # pad the last call, dropped below
         host = gather_batch(cache, idx, cfg)
         out = jax.device_get(fn(params, to_device(host, NamedSharding(mesh, P("data")))))
         return {k: v[real] for k, v in out.items()}
 
-    starts = range(0, n, per_call)
+    starts = range(scenes.start, n, per_call)
     chunks = list(tqdm(concurrent_map(call, starts, workers), total=len(starts), desc="score",
                        unit="call", file=sys.stderr, disable=not progress))
     return {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}

@@ -3,6 +3,7 @@ device(s), rotated and cropped."""
 
 from __future__ import annotations
 
+import itertools
 from typing import Any, NamedTuple
 
 import jax
@@ -47,7 +48,7 @@ def local_rows(sharding, batch_size: int) -> slice:
         for idx in sharding.addressable_devices_indices_map((batch_size,)).values()
     )
     lo, hi = spans[0][0], spans[-1][1]
-    if any(a[1] != b[0] and a != b for a, b in zip(spans, spans[1:])):
+    if any(a[1] != b[0] and a != b for a, b in itertools.pairwise(spans)):
         raise ValueError(f"this process's rows of the batch are not contiguous: {spans}")
     return slice(lo, hi)
 

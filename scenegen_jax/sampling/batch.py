@@ -17,8 +17,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
+from jax.sharding import NamedSharding
+from jax.sharding import PartitionSpec as P
 
-from scenegen_jax.backend import concurrent_map, default_parallel, default_workers
+from scenegen_jax.backend import concurrent_map, default_parallel, default_workers, make_mesh
 from scenegen_jax.config import Config
 from scenegen_jax.raster.transform import crop_map
 from scenegen_jax.sampling.model import Model, NetworkModel
@@ -141,6 +143,10 @@ def sample_split(keys: jax.Array, params: Any, maps, egos: Actors, given: Actors
     parts are equal, the last padded with copies of the last map (or key), so that one
     compilation serves all (the padding's scenes are dropped).
 
+    Every local device works: call c runs on device c mod D, and a batch left whole (one
+    call, the accelerator default) has its maps split over the devices (a `data` mesh).
+    Each scene is the same on any number of devices.
+
     Args:
       keys, params, maps, egos, given, caps, cfg, options, model: as in `sample_batch`.
       workers: concurrent calls (threads); default `backend.default_workers()` (one
@@ -150,6 +156,7 @@ def sample_split(keys: jax.Array, params: Any, maps, egos: Actors, given: Actors
       Sample with leading axes [B, S].
     """
     kwargs = {"cfg": cfg, "options": options, "model": model}
+    devices = jax.local_devices()
     workers = default_workers() if workers is None else workers
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
@@ -161,19 +168,40 @@ def sample_split(keys: jax.Array, params: Any, maps, egos: Actors, given: Actors
         size = 1  # one map (or sample) per call: one program for every scene, any batch size
     parts = -(-n // size)
     if parts == 1:
-        return sample_batch(keys, params, maps, egos, given, caps, **kwargs)
+        return _sharded_call(keys, params, (maps, egos, given, caps), devices, kwargs)
     index = np.minimum(np.arange(parts * size), n - 1).reshape(parts, size)
     per_map = (maps, egos, given, caps)
 
-    def call(i):
+    def call(job):  # call c runs on local device c mod D
+        c, i = job
+        on = (lambda x: x) if len(devices) == 1 else functools.partial(
+            jax.device_put, device=devices[c % len(devices)])
         if axis == 0:
-            return sample_batch(keys[i], params, *jax.tree.map(lambda x: x[i], per_map), **kwargs)
-        return sample_batch(keys[:, i], params, *per_map, **kwargs)
+            inputs = jax.tree.map(lambda x: on(x[i]), (keys, *per_map))
+        else:
+            inputs = (on(keys[:, i]), *jax.tree.map(on, per_map))
+        return sample_batch(inputs[0], on(params), *inputs[1:], **kwargs)
 
-    outs = list(concurrent_map(call, index, workers))
+    outs = list(concurrent_map(call, enumerate(index), workers))
+    if len(devices) > 1:  # joined on the first device
+        outs = jax.device_put(outs, devices[0])
     whole = slice(None)
     keep = (slice(0, n), whole) if axis == 0 else (whole, slice(0, n))
     return jax.tree.map(lambda *x: jnp.concatenate(x, axis=axis)[keep], *outs)
+
+
+def _sharded_call(keys, params, per_map, devices, kwargs) -> Sample:
+    """`sample_batch` of a whole batch in one call, its maps split over `devices` (a `data`
+    mesh; the batch padded with copies of its last map to a multiple of their number)."""
+    if len(devices) == 1:
+        return sample_batch(keys, params, *per_map, **kwargs)
+    b = keys.shape[0]
+    pad = np.minimum(np.arange(-(-b // len(devices)) * len(devices)), b - 1)
+    mesh = make_mesh(devices)
+    data, replicated = NamedSharding(mesh, P("data")), NamedSharding(mesh, P())
+    keys, per_map = jax.device_put((keys[pad], jax.tree.map(lambda x: x[pad], per_map)), data)
+    out = sample_batch(keys, jax.device_put(params, replicated), *per_map, **kwargs)
+    return jax.tree.map(lambda x: x[:b], out)
 
 
 def batch_inputs(cfg: Config, num_maps: int, given: Actors | None = None, caps=None):
@@ -274,9 +302,11 @@ def sample_on_cache(
     caps=None,
     batch_size: int = 8,
     options: SamplerOptions = DEFAULT_OPTIONS,
+    scenes: range | None = None,
 ) -> Iterator[CacheScene]:
     """Samples `num` scenes on the maps and egos of a cache (a `Cache` or `CacheUnion`), in
-    batches of `batch_size`, and yields them in order.
+    batches of `batch_size`, and yields them in order; with `scenes`, only those of the
+    `num` (e.g. one process's share).
 
     Scene k uses cache scene `indices[k % len(indices)]` (default: every scene in order),
     given actors `given[k % len(given)]` (numpy Actors [N] each; none by default) and key
@@ -284,6 +314,9 @@ def sample_on_cache(
     """
     if num < 1 or batch_size < 1:
         raise ValueError(f"num and batch_size must be >= 1, got {num} and {batch_size}")
+    scenes = range(num) if scenes is None else scenes
+    if scenes.step != 1 or not 0 <= scenes.start <= scenes.stop <= num:
+        raise ValueError(f"scenes {scenes} is not a contiguous part of range({num})")
     indices = list(range(len(cache))) if indices is None else list(indices)
     key = jax.random.key(seed)
     crop = jax.jit(crop_map, static_argnums=2)
@@ -294,8 +327,8 @@ def sample_on_cache(
             maps[i] = np.asarray(crop(jnp.asarray(cache.maps[i]), 0.0, cfg))
         return maps[i]
 
-    for start in range(0, num, batch_size):
-        ks = np.minimum(np.arange(start, start + batch_size), num - 1)  # last batch padded
+    for start in range(scenes.start, scenes.stop, batch_size):
+        ks = np.minimum(np.arange(start, start + batch_size), scenes.stop - 1)  # padded
         map_ids = [indices[k % len(indices)] for k in ks]
         egos = cache.ego(np.asarray(map_ids))
         rows = None
@@ -304,7 +337,7 @@ def sample_on_cache(
         sample = sample_scenes(key, params, cfg, np.stack([map_of(i) for i in map_ids]), egos,
                                rows, 1, caps, first=start, options=options)
         sample = jax.device_get(jax.tree.map(lambda x: x[:, 0], sample))
-        for j in range(min(batch_size, num - start)):
+        for j in range(min(batch_size, scenes.stop - start)):
             row = jax.tree.map(lambda x, j=j: x[j], sample)
             yield CacheScene(start + j, map_ids[j], map_of(map_ids[j]), _take(egos, j),
                              row.actors, int(row.num_given), int(row.stop_reason),
