@@ -136,3 +136,40 @@ def test_overflow_is_counted():
     _, scene, overflow = scene_from_cached(canvas, a, make_ego(cfg.ego_size_m), 0.0, cfg)
     assert int(overflow) == 2 and int(np.sum(scene.actors.valid)) == 3
     assert isinstance(scene.actors, Actors)
+
+
+def test_sharded_prepare_reads_as_the_whole_cache(tiny_train_cache, data_root, tmp_path):
+    """Two `prepare --shard I/2` jobs make one cache equal to the unsharded one (the same
+    frames: every 8th step of the train logs); a missing or foreign shard is an error."""
+    import shutil
+
+    from scenegen_jax.data.cache import ACTOR_FIELDS
+    from scenegen_jax.data.prepare import prepare
+    from scenegen_jax.data.sources import source_spec
+    from scenegen_jax.data.union import load_union
+
+    spec = source_spec("av2", data_root, "train", 8)
+    out = tmp_path / "sharded"
+    for i in (1, 0):  # any order, any machine
+        prepare(spec, str(out), get_config("tiny"), workers=1, shard=(i, 2))
+    assert sorted(os.listdir(out)) == ["shard-00000-of-00002", "shard-00001-of-00002"]
+    sharded = load_cache(str(out))
+    assert sharded.scene_ids == tiny_train_cache.scene_ids
+    assert [s["scenes"] for s in sharded.meta["shards"]] == [40, 20]  # files 2 + 1
+    for k in ACTOR_FIELDS:
+        want = getattr(tiny_train_cache.actors, k)
+        np.testing.assert_array_equal(getattr(sharded.actors, k), want)
+    np.testing.assert_array_equal(sharded.ego_size, tiny_train_cache.ego_size)
+    for i in (0, 39, 40, 59):  # both sides of the shard boundary
+        np.testing.assert_array_equal(sharded.maps[i], tiny_train_cache.maps[i])
+    np.testing.assert_array_equal(sharded.maps[[3, 45]], tiny_train_cache.maps[[3, 45]])
+    assert len(load_union([str(out), tiny_train_cache.path])) == 120  # a cache like any other
+
+    other = tmp_path / "other"
+    prepare(spec, str(other), get_config("tiny", max_actors=20), workers=1, shard=(1, 2))
+    shutil.rmtree(out / "shard-00001-of-00002")
+    with pytest.raises(FileNotFoundError, match=r"shard\(s\) \[1\] of 2 missing"):
+        load_cache(str(out))
+    shutil.copytree(other / "shard-00001-of-00002", out / "shard-00001-of-00002")
+    with pytest.raises(ValueError, match=r"shard-00001-of-00002/meta.json: field slots differs"):
+        load_cache(str(out))

@@ -19,12 +19,24 @@ def cmd_prepare(args) -> None:
 
     cfg = get_config(args.config, **overrides(args.set))
     spec = source_spec(args.source, args.root, args.split, args.stride)
+    shard = parse_shard(args.shard) if args.shard else None
     with tqdm(desc=f"prepare {args.source}", unit="file", file=sys.stderr) as bar:
         summary, rate = prepare(
-            spec, args.out, cfg, workers=args.workers, strict=args.strict, progress=bar
+            spec, args.out, cfg, workers=args.workers, strict=args.strict, progress=bar,
+            shard=shard,
         )
     out = {"out": args.out, "config": cfg.name, "scenes_per_s": round(rate, 2)}
+    if shard:
+        out["shard"] = list(shard)
     print(json.dumps({**out, **summary.to_dict()}))
+
+
+def parse_shard(text: str) -> tuple[int, int]:
+    """(I, N) of `--shard I/N`."""
+    index, _, count = text.partition("/")
+    if not (index.isdigit() and count.isdigit()) or not 0 <= int(index) < int(count):
+        raise ValueError(f"--shard {text!r}: expected I/N with 0 <= I < N, e.g. 0/8")
+    return int(index), int(count)
 
 
 def _numbered(path: str, n: int, index: int) -> str:
@@ -77,6 +89,9 @@ def add_parsers(sub) -> None:
                     help="keep every N-th step of a log or scenario (10 Hz: default 10, one "
                     "frame per second)")
     sp.add_argument("--workers", type=int, help="processes (default: one per core)")
+    sp.add_argument("--shard", metavar="I/N",
+                    help="prepare only part I of N of the files, into OUT/shard-I-of-N/ (N "
+                    "jobs, e.g. a SLURM array, make one cache that every command reads)")
     sp.add_argument("--strict", action="store_true",
                     help="stop at the first unusable file instead of skipping and counting it")
     sp.add_argument("--set", nargs="*", metavar="FIELD=VALUE", help="config overrides")

@@ -6,6 +6,10 @@ Layout of a cache directory:
   actors.npz    padded actors [S, A] (cls, position, size, heading, velocity, valid), the
                 ego (velocity, size) per scene, and the ego's city pose [S, 3, 3]
 
+A sharded cache (`prepare --shard I/N`, one job per shard, e.g. on N machines) is a directory
+of N such caches, `shard-0000I-of-0000N/`; `load_cache` reads it as one cache, the shards'
+scenes in shard order and their maps memory-mapped per shard.
+
 The canvas covers every rotation of the grid about the ego, and the actors are those within
 the canvas's inscribed circle, so rotation augmentation never reaches outside the cache.
 """
@@ -18,9 +22,10 @@ import json
 import logging
 import math
 import os
+import re
 import tokenize
 import zipfile
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 
@@ -246,13 +251,47 @@ def pad_frame_actors(frame: Frame, cfg: Config, slots: int) -> tuple[dict, np.nd
     return out, inside, overflow
 
 
+class StackedMaps:
+    """The memory-mapped `maps.npy` of several caches read as one [S, C, C, channels] array:
+    indexing reads only the scenes asked for."""
+
+    def __init__(self, maps: Sequence[np.ndarray], offsets: np.ndarray):
+        self._maps, self._offsets = list(maps), offsets
+        self.shape = (int(offsets[-1]), *maps[0].shape[1:])
+        self.dtype = maps[0].dtype
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, index):
+        if isinstance(index, (int, np.integer)):
+            i = int(index) + (self.shape[0] if index < 0 else 0)
+            if not 0 <= i < self.shape[0]:
+                raise IndexError(f"scene {index} out of range [0, {self.shape[0]})")
+            c = int(np.searchsorted(self._offsets, i, side="right")) - 1
+            return self._maps[c][i - self._offsets[c]]
+        rows = np.arange(self.shape[0])[index]
+        return np.stack([self[int(i)] for i in np.atleast_1d(rows)])
+
+
+SHARD_NAME = "shard-{:05d}-of-{:05d}"
+SHARD_RE = re.compile(r"shard-(\d{5})-of-(\d{5})")
+
+
+def shard_dir(out_dir: str, index: int, count: int) -> str:
+    """The folder of shard `index` of `count` inside the cache directory `out_dir`."""
+    if not 0 <= index < count:
+        raise ValueError(f"--shard {index}/{count}: need 0 <= I < N")
+    return os.path.join(out_dir, SHARD_NAME.format(index, count))
+
+
 @dataclasses.dataclass
 class Cache:
     """A loaded cache: map canvases (memory-mapped) and actor arrays."""
 
     path: str
     meta: dict
-    maps: np.ndarray  # float16 [S, C, C, len(ALL_MAP_CHANNELS)]
+    maps: np.ndarray | StackedMaps  # float16 [S, C, C, len(ALL_MAP_CHANNELS)]
     actors: Actors  # numpy fields [S, A]
     ego_velocity: np.ndarray  # [S, 2] m/s
     ego_size: np.ndarray  # [S, 2] m
@@ -290,9 +329,12 @@ _UNREADABLE_ARRAY = (
 
 
 def load_cache(path: str) -> Cache:
-    """Opens a cache directory written by `write_cache`; errors name the file and field."""
+    """Opens a cache directory written by `write_cache` or `prepare` (sharded or not);
+    errors name the file and field."""
     meta_path = os.path.join(path, "meta.json")
     if not os.path.isfile(meta_path):
+        if os.path.isdir(path) and any(SHARD_RE.fullmatch(n) for n in os.listdir(path)):
+            return _load_sharded(path)
         raise FileNotFoundError(f"{meta_path}: not a scenegen cache (run `scenegen prepare`)")
     try:
         with open(meta_path) as f:
@@ -335,6 +377,56 @@ def load_cache(path: str) -> Cache:
         ego_velocity=data["ego_velocity"],
         ego_size=data["ego_size"],
         city_from_ego=data.get("city_from_ego", np.tile(np.eye(3), (n, 1, 1))),
+    )
+
+
+# Fields every shard of a cache must share (the rest, scene ids and summaries, add up).
+SHARD_SHARED_FIELDS = ("version", "grid_size", "m_per_px", "canvas_size", "slots", "channels",
+                       "config")
+
+
+def _load_sharded(path: str) -> Cache:
+    """The shards `shard-I-of-N` of `path` as one cache; every shard must be there."""
+    found = {}
+    for name in sorted(os.listdir(path)):
+        m = SHARD_RE.fullmatch(name)
+        if m:
+            found[(int(m[1]), int(m[2]))] = os.path.join(path, name)
+    counts = sorted({n for _, n in found})
+    if len(counts) != 1:
+        raise ValueError(f"{path}: shards of different counts {counts}; keep one --shard I/N "
+                         "set per cache directory")
+    count = counts[0]
+    missing = [i for i in range(count) if (i, count) not in found]
+    if missing:
+        raise FileNotFoundError(f"{path}: shard(s) {missing} of {count} missing (run `scenegen "
+                                f"prepare --shard I/{count}` for each)")
+    shards = [load_cache(found[(i, count)]) for i in range(count)]
+    first = shards[0].meta
+    for shard in shards[1:]:
+        for field in SHARD_SHARED_FIELDS:
+            if shard.meta.get(field) != first.get(field):
+                raise ValueError(f"{shard.path}/meta.json: field {field} differs from "
+                                 f"{shards[0].path}'s; prepare every shard with the same "
+                                 "--config, --set and source")
+    sizes = [len(c) for c in shards]
+    offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    meta = {
+        **{k: first[k] for k in SHARD_SHARED_FIELDS},
+        "scene_ids": [sid for c in shards for sid in c.scene_ids],
+        "source": {k: v for k, v in first.get("source", {}).items() if k != "shard"},
+        "shards": [{"path": c.path, "scenes": len(c), "summary": c.meta.get("summary")}
+                   for c in shards],
+    }
+    cat = lambda get: np.concatenate([get(c) for c in shards])  # noqa: E731
+    return Cache(
+        path=path,
+        meta=meta,
+        maps=StackedMaps([c.maps for c in shards], offsets),
+        actors=Actors(**{k: cat(lambda c, k=k: getattr(c.actors, k)) for k in ACTOR_FIELDS}),
+        ego_velocity=cat(lambda c: c.ego_velocity),
+        ego_size=cat(lambda c: c.ego_size),
+        city_from_ego=cat(lambda c: c.city_from_ego),
     )
 
 

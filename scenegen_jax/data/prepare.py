@@ -18,7 +18,13 @@ from typing import NamedTuple
 
 from scenegen_jax.backend import cpu_cores
 from scenegen_jax.config import Config
-from scenegen_jax.data.cache import CacheWriter, EncodedFrame, Summary, encode_frame
+from scenegen_jax.data.cache import (
+    CacheWriter,
+    EncodedFrame,
+    Summary,
+    encode_frame,
+    shard_dir,
+)
 from scenegen_jax.data.sources import read_file, source_files
 
 log = logging.getLogger(__name__)
@@ -52,11 +58,14 @@ def prepare(
     workers: int | None = None,
     strict: bool = False,
     progress=None,
+    shard: tuple[int, int] | None = None,
 ) -> tuple[Summary, float]:
     """Writes the cache of source `spec` into `out_dir`.
 
     Args:
       spec: a source (`sources.source_spec`).
+      shard: (I, N): only part I of N of the source's files (contiguous, in file order),
+        into `cache.shard_dir(out_dir, I, N)`; N such jobs, run anywhere, make one cache.
       workers: processes (default: one per available core; 1 reads in this process).
       strict: stop at the first unusable file (its error names the file and field).
       progress: optional tqdm-like object, updated once per file.
@@ -65,6 +74,13 @@ def prepare(
       (summary, scenes per second of wall time).
     """
     files = source_files(spec)
+    if shard is not None:
+        index, count = shard
+        out_dir = shard_dir(out_dir, index, count)
+        size, extra = divmod(len(files), count)
+        first = index * size + min(index, extra)
+        files = files[first : first + size + (index < extra)]
+        spec = {**spec, "shard": [index, count]}
     workers = workers or cpu_cores()
     start = time.perf_counter()
     writer = CacheWriter(out_dir, cfg, spec)

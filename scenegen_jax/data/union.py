@@ -10,31 +10,14 @@ from collections.abc import Sequence
 import numpy as np
 
 from scenegen_jax.config import Config
-from scenegen_jax.data.cache import ACTOR_FIELDS, Cache, check_compatible, load_cache
+from scenegen_jax.data.cache import (
+    ACTOR_FIELDS,
+    Cache,
+    StackedMaps,
+    check_compatible,
+    load_cache,
+)
 from scenegen_jax.scene import Actors, make_ego
-
-
-class StackedMaps:
-    """The memory-mapped `maps.npy` of several caches read as one [S, C, C, channels] array:
-    indexing reads only the scenes asked for."""
-
-    def __init__(self, maps: Sequence[np.ndarray], offsets: np.ndarray):
-        self._maps, self._offsets = list(maps), offsets
-        self.shape = (int(offsets[-1]), *maps[0].shape[1:])
-        self.dtype = maps[0].dtype
-
-    def __len__(self) -> int:
-        return self.shape[0]
-
-    def __getitem__(self, index):
-        if isinstance(index, (int, np.integer)):
-            i = int(index) + (self.shape[0] if index < 0 else 0)
-            if not 0 <= i < self.shape[0]:
-                raise IndexError(f"scene {index} out of range [0, {self.shape[0]})")
-            c = int(np.searchsorted(self._offsets, i, side="right")) - 1
-            return self._maps[c][i - self._offsets[c]]
-        rows = np.arange(self.shape[0])[index]
-        return np.stack([self[int(i)] for i in np.atleast_1d(rows)])
 
 
 def source_labels(caches: Sequence[Cache]) -> list[str]:
