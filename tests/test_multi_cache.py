@@ -263,3 +263,40 @@ def test_train_on_two_caches(caches, tmp_path):
     assert int(load_trained(workdir)[1].step) == 2
     with open(os.path.join(workdir, "data.json")) as f:
         assert json.load(f)["shares"] == [0.5, 0.5]
+
+
+@pytest.mark.slow
+def test_four_shards_train_to_the_parameters_of_one_cache(womd_root, tmp_path):
+    """`prepare --shard I/4` x 4 (womd_mini GPUDrive JSON val, 14 files) reads as the
+    unsharded cache and trains to the same parameters, bit for bit."""
+    import subprocess
+
+    from small import train_cmd
+
+    from scenegen_jax.config import get_config
+    from scenegen_jax.data.cache import ACTOR_FIELDS
+    from scenegen_jax.data.prepare import prepare
+    from scenegen_jax.data.sources import source_spec
+    from scenegen_jax.train.loop import load_trained
+
+    spec = source_spec("womd_json", os.path.join(womd_root, "gpudrive_json"), "val", 10)
+    whole, sharded = str(tmp_path / "whole"), str(tmp_path / "sharded")
+    prepare(spec, whole, get_config("tiny"), workers=1)
+    for i in range(4):
+        prepare(spec, sharded, get_config("tiny"), workers=1, shard=(i, 4))
+    with pytest.raises(ValueError, match=r"--shard 14/15: no files for this shard \(14 files"):
+        prepare(spec, sharded, get_config("tiny"), workers=1, shard=(14, 15))
+    a, b = load_cache(whole), load_cache(sharded)
+    assert a.scene_ids == b.scene_ids and len(b.meta["shards"]) == 4
+    for k in ACTOR_FIELDS:
+        np.testing.assert_array_equal(getattr(a.actors, k), getattr(b.actors, k))
+    np.testing.assert_array_equal(a.maps[: len(a)], b.maps[: len(b)])
+
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    for cache in (whole, sharded):
+        cmd = train_cmd(cache, cache + "_run", 3)
+        res = subprocess.run(cmd, env=env, capture_output=True, text=True)
+        assert res.returncode == 0, res.stderr[-2000:]
+    pa, pb = (jax.tree.leaves(load_trained(c + "_run")[1].params) for c in (whole, sharded))
+    for x, y in zip(pa, pb, strict=True):
+        np.testing.assert_array_equal(x, y)

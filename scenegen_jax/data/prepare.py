@@ -80,6 +80,10 @@ def prepare(
         size, extra = divmod(len(files), count)
         first = index * size + min(index, extra)
         files = files[first : first + size + (index < extra)]
+        if not files:
+            total = size * count + extra
+            raise ValueError(f"--shard {index}/{count}: no files for this shard ({total} files "
+                             f"in all); use at most {total} shards")
         spec = {**spec, "shard": [index, count]}
     workers = workers or cpu_cores()
     start = time.perf_counter()
