@@ -30,6 +30,9 @@ from jax.sharding import Mesh
 STEP_LOOP_UNROLL = 4
 
 
+DATA_AXIS = "data"  # the mesh axis a batch is sharded along
+
+
 def on_cpu() -> bool:
     """Whether JAX's default backend is XLA:CPU."""
     return jax.default_backend() == "cpu"
@@ -126,7 +129,7 @@ def make_mesh(devices=None) -> Mesh:
     """A 1-D mesh with a `data` axis over all (or the given) devices; with several
     processes, every process's devices."""
     devices = np.asarray(jax.devices() if devices is None else devices)
-    return Mesh(devices, ("data",))
+    return Mesh(devices, (DATA_AXIS,))
 
 
 def release_freed_memory() -> None:

@@ -7,10 +7,11 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import optax
+from jax.flatten_util import ravel_pytree
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from scenegen_jax.backend import release_freed_memory
+from scenegen_jax.backend import DATA_AXIS, release_freed_memory
 from scenegen_jax.config import Config
 from scenegen_jax.likelihood.batch import Batch, crop_batch
 from scenegen_jax.likelihood.terms import mean_nll
@@ -64,21 +65,44 @@ def loss_fn(params, cfg: Config, maps, scene):
     return mean_nll(unroll_terms(params, cfg, maps, scene, cfg.hard_negatives))
 
 
-def train_step(state: TrainState, batch: Batch, cfg: Config) -> tuple[TrainState, dict]:
-    """One optimizer step on a batch (pure; jit it with `make_train_step`)."""
+def _psum_packed(tree, axis: str | None):
+    """`lax.psum` of every array of `tree` over `axis` as one all-reduce of one vector (one
+    collective per step instead of one per array: each costs a round trip between hosts);
+    `tree` as it is without an axis."""
+    if axis is None:
+        return tree
+    flat, unravel = ravel_pytree(jax.tree.map(lambda x: x.astype(jnp.float32), tree))
+    summed = unravel(jax.lax.psum(flat, axis))
+    return jax.tree.map(lambda x, y: y.astype(x.dtype), tree, summed)
+
+
+def train_step(
+    state: TrainState, batch: Batch, cfg: Config, axis: str | None = None
+) -> tuple[TrainState, dict]:
+    """One optimizer step on a batch (pure; jit it with `make_train_step`).
+
+    With `axis` (inside `shard_map` over a `data` mesh axis) `batch` is this device's part
+    of the global batch: it takes its own slice of the step's rotations, its gradient and
+    statistics are summed over the devices in one all-reduce, and every device applies the
+    same update.
+    """
     key = jax.random.fold_in(jax.random.wrap_key_data(state.key), state.step)
-    b = batch.actors.cls.shape[0]
+    local = batch.actors.cls.shape[0]
+    devices = 1 if axis is None else jax.lax.axis_size(axis)
+    first = 0 if axis is None else jax.lax.axis_index(axis) * local
+    b = local * devices  # the global batch: draws, and the mean over scenes, are over it
     if cfg.rotate_augment:
         thetas = jax.random.uniform(key, (b,), maxval=2 * jnp.pi)
     else:
         thetas = jnp.zeros((b,))
-    maps, scene = crop_batch(batch, thetas, cfg)
+    maps, scene = crop_batch(batch, jax.lax.dynamic_slice_in_dim(thetas, first, local), cfg)
     if cfg.map_dropout > 0:
         keep = jax.random.uniform(jax.random.fold_in(key, 1), (b, 1, 1, 1)) >= cfg.map_dropout
-        maps = maps * keep
+        maps = maps * jax.lax.dynamic_slice_in_dim(keep, first, local)
     # loss_fn's value, and its gradient taken one window at a time.
     unrolled, grads = unroll_terms_and_grads(state.params, cfg, maps, scene, 1.0 / b)
     loss, stats = mean_nll(unrolled)
+    grads, stats, loss = _psum_packed((grads, stats, loss / devices), axis)
     updates, opt_state = make_optimizer(cfg).update(grads, state.opt_state, state.params)
     params = optax.apply_updates(state.params, updates)
     stats = {**stats, "loss": loss, "grad_norm": optax.global_norm(grads)}
@@ -86,17 +110,26 @@ def train_step(state: TrainState, batch: Batch, cfg: Config) -> tuple[TrainState
 
 
 def make_train_step(cfg: Config, mesh: Mesh | None = None):
-    """The jitted train step; with a mesh, the batch is sharded over `data` and the state
-    replicated. The state argument is donated."""
-    fn = lambda state, batch: train_step(state, batch, cfg)  # noqa: E731
+    """The jitted train step; with a mesh, the batch is sharded over `data` (each device
+    unrolls its own scenes, `shard_map`) and the state replicated. The state argument is
+    donated."""
     if mesh is None:
-        return jax.jit(fn, donate_argnums=0)
+        return jax.jit(lambda state, batch: train_step(state, batch, cfg), donate_argnums=0)
     if cfg.batch_size % mesh.size:
         raise ValueError(f"batch_size {cfg.batch_size} is not divisible by {mesh.size} devices")
+    per_device = jax.shard_map(
+        lambda state, batch: train_step(state, batch, cfg, DATA_AXIS),
+        mesh=mesh,
+        in_specs=(P(), P(DATA_AXIS)),
+        out_specs=(P(), P()),
+        # The network's custom VJPs do not type the manual axis; the packed psum makes every
+        # output replicated.
+        check_vma=False,
+    )
     replicated = NamedSharding(mesh, P())
-    data = NamedSharding(mesh, P("data"))
+    data = NamedSharding(mesh, P(DATA_AXIS))
     return jax.jit(
-        fn,
+        per_device,
         in_shardings=(replicated, data),
         out_shardings=(replicated, replicated),
         donate_argnums=0,
