@@ -159,7 +159,8 @@ def add_parsers(sub) -> None:
                     help="cache directories to score (summary also per source)")
     sp.add_argument("--out", required=True, help="CSV, one row per scene (with its source)")
     sp.add_argument("--batch-size", type=int, default=8,
-                    help="scenes per batch, split into concurrent calls (one per core on CPU)")
+                    help="scenes per batch and device, split into concurrent calls (one per "
+                    "core on CPU)")
     sp.add_argument("--actors-out", help="optional .npz of per-step NLL terms")
     sp.add_argument("--top-k", type=int, default=0,
                     help="render the K scenes with the highest NLL per actor (needs --render)")

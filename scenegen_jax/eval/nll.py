@@ -51,9 +51,11 @@ def score_cache(params, cache: Cache, cfg: Config, batch_size: int = 8, progress
                 workers: int | None = None, scenes: range | None = None):
     """Scores every scene of a cache (or the `scenes` range of them), on every local device.
 
-    Each batch of `batch_size` scenes runs as `workers` concurrent calls on equal parts of
-    it (`backend.concurrent_map`; default one per core on CPU, 1 on accelerators); every
-    scene's scores are its own, whatever the batching.
+    Each batch of `batch_size` scenes per local device runs as `workers` concurrent calls
+    on equal parts of it (`backend.concurrent_map`; default one per core on CPU, 1 on
+    accelerators), each call's scenes split over the devices. Every scene's scores are its
+    own; a device computes the same groups of scenes whatever the device count, so the
+    scores do not change with it, bit for bit.
 
     Returns:
       dict with per-step arrays over the scenes: term -> [S, T] NLL (nats), "step_valid"
@@ -61,7 +63,7 @@ def score_cache(params, cache: Cache, cfg: Config, batch_size: int = 8, progress
     """
     mesh = make_mesh(jax.local_devices())  # with several processes: this one's devices
     workers = default_workers() if workers is None else workers
-    per_call = max(batch_size // (workers * mesh.size), 1) * mesh.size
+    per_call = max(batch_size // workers, 1) * mesh.size
     fn = _jitted_scorer(cfg.inference(), mesh)  # one program per model, not per run config
     params = jax.device_put(params, NamedSharding(mesh, P()))
     scenes = range(len(cache)) if scenes is None else scenes
