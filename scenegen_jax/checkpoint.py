@@ -95,11 +95,10 @@ class Checkpointer:
         saved = self.manager.save(step, args=ocp.args.StandardSave(state._asdict()), force=force)
         if saved:
             self.manager.wait_until_finished()
-            sums = tree_checksums(state._asdict())
             if is_main_process():
                 path = os.path.join(self.directory, str(step), CHECKSUM_FILE)
                 with open(path + ".tmp", "w") as f:
-                    json.dump(sums, f)
+                    json.dump(tree_checksums(state._asdict()), f)
                 os.replace(path + ".tmp", path)
             sync_processes(f"checksums of step {step} written")
         return saved
