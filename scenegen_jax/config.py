@@ -73,6 +73,10 @@ class Config:
         map does, instead of only memorising where vehicles stand on the training maps.
       remat: recompute the backbone and heads in the train step's backward pass instead of
         storing their activations (same values and gradients; less memory, more compute).
+      coord_channels: two more input channels, each pixel's row and column in [-1, 1]
+        (beyond the paper's input; off in the presets). The network is otherwise fully
+        convolutional and cannot tell the top of the grid from the middle, where the first
+        actor in canonical order stands (experiments/results/README.md, session 15).
       seed: base random seed.
     """
 
@@ -98,6 +102,7 @@ class Config:
     rotate_augment: bool = True
     map_dropout: float = 0.0
     remat: bool = False
+    coord_channels: bool = False
     seed: int = 0
 
     def __post_init__(self):

@@ -206,6 +206,29 @@ def test_warm_start_extends_a_model_without_map_layers(tiny_train_cache, small_s
         warm_start(init_state(CFG).params, source.params, "src")
 
 
+def test_coordinate_channels_tell_rows_apart_and_start_at_zero_from_a_warm_start():
+    """With `coord_channels` layer 1's gates depend on the pixel's row and column (a map that
+    is the same everywhere gives different gates at the top and the bottom); extended from a
+    model without them, the coordinates' weights start at zero and change nothing."""
+    from scenegen_jax.train.loop import warm_start
+
+    coord = CFG.replace(coord_channels=True)
+    net = SceneGenNet(coord)
+    flat_map = jnp.ones((1, CFG.grid_size, CFG.grid_size, len(CFG.map_channels)))
+    params = init_state(coord, seed=2).params
+    gates = net.apply({"params": params}, flat_map, method=SceneGenNet.map_gates)
+    mid = CFG.grid_size // 2
+    assert float(jnp.abs(gates[0, 3, mid] - gates[0, -4, mid]).max()) > 1e-3  # top vs bottom
+    assert float(jnp.abs(gates[0, mid, 3] - gates[0, mid, -4]).max()) > 1e-3  # left vs right
+
+    source = init_state(CFG, seed=1).params
+    extended = warm_start(params, source, "src")
+    assert not np.any(np.asarray(extended["lstm1_coord"]))
+    want = SceneGenNet(CFG).apply({"params": source}, flat_map, method=SceneGenNet.map_gates)
+    got = net.apply({"params": extended}, flat_map, method=SceneGenNet.map_gates)
+    np.testing.assert_array_equal(got, want)
+
+
 def test_nan_batch_is_rejected_before_the_optimizer(tiny_train_cache, small_scenes):
     batch = _batch(tiny_train_cache, small_scenes)
     batch.actors.velocity[1, 0, 0] = np.nan

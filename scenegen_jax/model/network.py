@@ -168,6 +168,8 @@ class SceneGenNet(nn.Module):
 
         if cm:
             self.lstm1_map = self.param("lstm1_map", conv_init, (5, 5, cm, 4 * h))
+        if cfg.coord_channels:
+            self.lstm1_coord = self.param("lstm1_coord", conv_init, (5, 5, 2, 4 * h))
         self.lstm1_act = self.param("lstm1_act", conv_init, (5, 5, NUM_ACTOR_CHANNELS, 4 * h))
         self.lstm1_rec = self.param("lstm1_rec", conv_init, (5, 5, h, 4 * h))
         self.lstm1_b = self.param("lstm1_b", lstm_bias, (4 * h,))
@@ -224,11 +226,19 @@ class SceneGenNet(nn.Module):
 
     # ------------------------------------------------------------------ recurrence
     def map_gates(self, map_raster):
-        """Map share of ConvLSTM layer 1's input gates (with its bias): [B,H,W,Cm] -> [B,H,W,4h]."""
+        """Map share of ConvLSTM layer 1's input gates (with its bias, and the pixel coordinates'
+        share with `coord_channels`): [B,H,W,Cm] -> [B,H,W,4h]."""
+        b, hh, ww, _ = map_raster.shape
         if not self.cfg.map_channels:
-            b, hh, ww, _ = map_raster.shape
-            return jnp.broadcast_to(self.lstm1_b, (b, hh, ww, 4 * self.cfg.hidden))
-        return conv(map_raster, self.lstm1_map, self.lstm1_b)
+            gates = jnp.broadcast_to(self.lstm1_b, (b, hh, ww, 4 * self.cfg.hidden))
+        else:
+            gates = conv(map_raster, self.lstm1_map, self.lstm1_b)
+        if self.cfg.coord_channels:
+            rows, cols = jnp.meshgrid(jnp.linspace(-1.0, 1.0, hh), jnp.linspace(-1.0, 1.0, ww),
+                                      indexing="ij")
+            coords = jnp.stack([rows, cols], axis=-1)[None].astype(gates.dtype)
+            gates = gates + conv(coords, self.lstm1_coord)  # the same for every scene
+        return gates
 
     def actor_gates(self, actor_raster):
         """Actor share of layer 1's input gates: [B,H,W,9] -> [B,H,W,4h] (no bias)."""

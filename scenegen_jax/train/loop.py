@@ -239,16 +239,18 @@ def train(
     return state
 
 
-# Parameters a warm start may lack in its source: the map share of layer 1's input
-# convolution (a source trained without map layers). Zero, it leaves the source's model as is.
-ZERO_IF_MISSING = ("lstm1_map",)
+# Parameters a warm start may lack in its source: the map and coordinate shares of layer 1's
+# input convolution (a source trained without map layers or coordinate channels). Zero, they
+# leave the source's model as is.
+ZERO_IF_MISSING = ("lstm1_map", "lstm1_coord")
 
 
 def warm_start(params, source, name: str):
     """`params` with every parameter taken from `source` (same names and shapes), so training
-    starts from the source's model. The only parameter the source may lack is the map share
-    of layer 1's input convolution: it starts at zero (the map then changes nothing until
-    training moves it), so a model without map layers can be extended with them.
+    starts from the source's model. The only parameters the source may lack are the map and
+    coordinate shares of layer 1's input convolution (`ZERO_IF_MISSING`): they start at zero
+    (the map or coordinates then change nothing until training moves them), so a model can
+    be extended with map layers or `coord_channels`.
 
     Raises:
       ValueError naming `name` and the parameter on a shape mismatch or another missing one.
