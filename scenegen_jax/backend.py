@@ -108,13 +108,18 @@ def is_main_process() -> bool:
     return jax.process_index() == 0
 
 
-def process_share(n: int) -> range:
-    """This process's contiguous share of n items (scenes to score or sample): equal parts
-    in process order, the first n mod P processes one item more; all of them with one."""
-    count, index = jax.process_count(), jax.process_index()
+def contiguous_part(n: int, index: int, count: int) -> range:
+    """Part `index` of `count` of n items in order: equal parts, the first n mod count of
+    them one item longer."""
     size, extra = divmod(n, count)
     start = index * size + min(index, extra)
     return range(start, start + size + (index < extra))
+
+
+def process_share(n: int) -> range:
+    """This process's contiguous share of n items (scenes to score or sample); all of them
+    with one process."""
+    return contiguous_part(n, jax.process_index(), jax.process_count())
 
 
 def sync_processes(name: str) -> None:

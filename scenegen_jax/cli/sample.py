@@ -58,6 +58,21 @@ def write_sampled(out: str, scene, cache, cfg: Config, seed: int, heatmap_steps)
     }
 
 
+def conditioning(args, cfg: Config, cache) -> tuple[list[int], list]:
+    """The cache scenes to cycle through (`--index`, checked) and the `--given` actors."""
+    from scenegen_jax.sampling.export import read_given
+
+    indices = list(args.index) if args.index else list(range(len(cache)))
+    for i in indices:
+        if not 0 <= i < len(cache):
+            raise IndexError(f"{cache.path}: --index {i} out of range [0, {len(cache)})")
+    given = []
+    if args.given:  # scene k is sampled beside the ego of cache scene indices[k mod len]
+        scene_egos = cache.ego_size[[indices[k % len(indices)] for k in range(args.num)]]
+        given = read_given(args.given, cfg, scene_egos, args.allow_overlap)
+    return indices, given
+
+
 def cmd_sample(args) -> None:
     """Samples scenes on the maps and egos of cache scenes; writes JSON lines, ScenarioNet
     pickles, PNGs and (with --heatmaps) per-step location heatmaps. With --distributed each
@@ -67,15 +82,9 @@ def cmd_sample(args) -> None:
 
     from scenegen_jax.backend import is_main_process, process_share, sync_processes
     from scenegen_jax.data.cache import load_cache
-    from scenegen_jax.data.scenarionet import (
-        index_dataset,
-        scenario_file_name,
-        scenario_from_frame,
-        write_dataset,
-    )
+    from scenegen_jax.data.scenarionet import scenario_from_frame, write_dataset
     from scenegen_jax.sampling import HEATMAP_STEPS, SamplerOptions, frame_from_sample
     from scenegen_jax.sampling.batch import sample_on_cache
-    from scenegen_jax.sampling.export import read_given
     from scenegen_jax.scene import CLASS_NAMES
 
     if args.num < 1 or args.batch_size < 1:
@@ -86,14 +95,7 @@ def cmd_sample(args) -> None:
     cfg, params, _ = load_model(args)
     cache = load_cache(args.data)
     cache.check_config(cfg)
-    indices = list(args.index) if args.index else list(range(len(cache)))
-    for i in indices:
-        if not 0 <= i < len(cache):
-            raise IndexError(f"{cache.path}: --index {i} out of range [0, {len(cache)})")
-    given = []
-    if args.given:  # scene k is sampled beside the ego of cache scene indices[k mod len]
-        scene_egos = cache.ego_size[[indices[k % len(indices)] for k in range(args.num)]]
-        given = read_given(args.given, cfg, scene_egos, args.allow_overlap)
+    indices, given = conditioning(args, cfg, cache)
     steps = HEATMAP_STEPS if args.heatmaps else ()
     out = os.path.abspath(args.out)
     for sub_dir in ("png", "scenarionet") + (("heatmaps",) if steps else ()):
@@ -125,20 +127,30 @@ def cmd_sample(args) -> None:
         sync_processes(f"samples of {out} written")
         if not is_main_process():
             return
-        counts = dict.fromkeys(CLASS_NAMES, 0)
-        names = []
-        with open(jsonl_path, "w") as jsonl:
-            for i in range(parts):
-                with open(part_of(i)) as f:
-                    for line in f:
-                        jsonl.write(line)
-                        row = json.loads(line)
-                        names.append(scenario_file_name({"id": row["scene"]}))
-                        for r in row["actors"]:
-                            counts[r["class"]] += 1
-                os.remove(part_of(i))
-        index_dataset(os.path.join(out, "scenarionet"), names)
+        counts = merge_sample_parts(out, [part_of(i) for i in range(parts)])
     print(json.dumps({"out": out, "scenes": args.num, "actors": counts}))
+
+
+def merge_sample_parts(out: str, parts: list[str]) -> dict[str, int]:
+    """Joins the processes' scenes.jsonl parts (in order) into OUT/scenes.jsonl, removes
+    them, indexes OUT/scenarionet over every process's scenarios; returns the actors per
+    class."""
+    from scenegen_jax.data.scenarionet import index_dataset, scenario_file_name
+    from scenegen_jax.scene import CLASS_NAMES
+
+    counts, names = dict.fromkeys(CLASS_NAMES, 0), []
+    with open(os.path.join(out, "scenes.jsonl"), "w") as jsonl:
+        for part in parts:
+            with open(part) as f:
+                for line in f:
+                    jsonl.write(line)
+                    row = json.loads(line)
+                    names.append(scenario_file_name({"id": row["scene"]}))
+                    for r in row["actors"]:
+                        counts[r["class"]] += 1
+            os.remove(part)
+    index_dataset(os.path.join(out, "scenarionet"), names)
+    return counts
 
 
 def add_parsers(sub) -> None:

@@ -16,7 +16,7 @@ import pickle
 import time
 from typing import NamedTuple
 
-from scenegen_jax.backend import cpu_cores
+from scenegen_jax.backend import contiguous_part, cpu_cores
 from scenegen_jax.config import Config
 from scenegen_jax.data.cache import (
     CacheWriter,
@@ -77,13 +77,11 @@ def prepare(
     if shard is not None:
         index, count = shard
         out_dir = shard_dir(out_dir, index, count)
-        size, extra = divmod(len(files), count)
-        first = index * size + min(index, extra)
-        files = files[first : first + size + (index < extra)]
-        if not files:
-            total = size * count + extra
-            raise ValueError(f"--shard {index}/{count}: no files for this shard ({total} files "
-                             f"in all); use at most {total} shards")
+        part = contiguous_part(len(files), index, count)
+        if not part:
+            raise ValueError(f"--shard {index}/{count}: no files for this shard ({len(files)} "
+                             f"files in all); use at most {len(files)} shards")
+        files = files[part.start : part.stop]
         spec = {**spec, "shard": [index, count]}
     workers = workers or cpu_cores()
     start = time.perf_counter()
