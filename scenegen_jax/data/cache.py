@@ -409,8 +409,6 @@ def _load_sharded(path: str) -> Cache:
                 raise ValueError(f"{shard.path}/meta.json: field {field} differs from "
                                  f"{shards[0].path}'s; prepare every shard with the same "
                                  "--config, --set and source")
-    sizes = [len(c) for c in shards]
-    offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
     meta = {
         **{k: first[k] for k in SHARD_SHARED_FIELDS},
         "scene_ids": [sid for c in shards for sid in c.scene_ids],
@@ -418,12 +416,29 @@ def _load_sharded(path: str) -> Cache:
         "shards": [{"path": c.path, "scenes": len(c), "summary": c.meta.get("summary")}
                    for c in shards],
     }
-    cat = lambda get: np.concatenate([get(c) for c in shards])  # noqa: E731
+    return stack_caches(shards, path, meta)
+
+
+def _pad_slots(x: np.ndarray, slots: int) -> np.ndarray:
+    if x.shape[1] == slots:
+        return x
+    pad = [(0, 0), (0, slots - x.shape[1])] + [(0, 0)] * (x.ndim - 2)
+    return np.pad(x, pad)  # zeros: invalid, class 0
+
+
+def stack_caches(caches: Sequence[Cache], path: str, meta: dict) -> Cache:
+    """Several caches read as one `Cache` (called `path`, with `meta`): their scenes in order,
+    actor arrays padded to the largest slot count and concatenated, maps memory-mapped per
+    cache (`StackedMaps`). Shards of a cache and a `CacheUnion`'s members both use it."""
+    slots = max(c.actors.cls.shape[1] for c in caches)
+    offsets = np.concatenate([[0], np.cumsum([len(c) for c in caches])]).astype(np.int64)
+    cat = lambda get: np.concatenate([get(c) for c in caches])  # noqa: E731
     return Cache(
         path=path,
         meta=meta,
-        maps=StackedMaps([c.maps for c in shards], offsets),
-        actors=Actors(**{k: cat(lambda c, k=k: getattr(c.actors, k)) for k in ACTOR_FIELDS}),
+        maps=StackedMaps([c.maps for c in caches], offsets),
+        actors=Actors(**{k: cat(lambda c, k=k: _pad_slots(getattr(c.actors, k), slots))
+                         for k in ACTOR_FIELDS}),
         ego_velocity=cat(lambda c: c.ego_velocity),
         ego_size=cat(lambda c: c.ego_size),
         city_from_ego=cat(lambda c: c.city_from_ego),

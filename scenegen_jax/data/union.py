@@ -16,6 +16,7 @@ from scenegen_jax.data.cache import (
     StackedMaps,
     check_compatible,
     load_cache,
+    stack_caches,
 )
 from scenegen_jax.scene import Actors, make_ego
 
@@ -31,13 +32,6 @@ def source_labels(caches: Sequence[Cache]) -> list[str]:
         s if short.count(s) == 1 else f"{kind(c)}:{c.path}"
         for s, c in zip(short, caches, strict=True)
     ]
-
-
-def _pad_slots(x: np.ndarray, slots: int) -> np.ndarray:
-    if x.shape[1] == slots:
-        return x
-    pad = [(0, 0), (0, slots - x.shape[1])] + [(0, 0)] * (x.ndim - 2)
-    return np.pad(x, pad)  # zeros: invalid, class 0
 
 
 @dataclasses.dataclass
@@ -72,19 +66,6 @@ class CacheUnion:
             return cls(caches, offsets, labels, c.path, c.meta, c.maps, c.actors,
                        c.ego_velocity, c.ego_size, c.city_from_ego)
         slots = max(c.actors.cls.shape[1] for c in caches)
-        actors = Actors(**{
-            k: np.concatenate([_pad_slots(getattr(c.actors, k), slots) for c in caches])
-            for k in ACTOR_FIELDS
-        })
-        per_scene = {k: np.concatenate([getattr(c, k) for c in caches])
-                     for k in ("ego_velocity", "ego_size", "city_from_ego")}
-        members = []
-        for c, a, b in zip(caches, offsets[:-1], offsets[1:], strict=True):
-            members.append(dataclasses.replace(
-                c,
-                actors=Actors(**{k: getattr(actors, k)[a:b] for k in ACTOR_FIELDS}),
-                **{k: v[a:b] for k, v in per_scene.items()},
-            ))
         first = caches[0].meta
         meta = {
             **{k: first[k] for k in ("version", "grid_size", "m_per_px", "canvas_size",
@@ -94,8 +75,17 @@ class CacheUnion:
             "members": [c.path for c in caches],
             "source": {},
         }
-        return cls(members, offsets, labels, " + ".join(c.path for c in caches), meta,
-                   StackedMaps([c.maps for c in caches], offsets), actors, **per_scene)
+        whole = stack_caches(caches, " + ".join(c.path for c in caches), meta)
+        per_scene = {k: getattr(whole, k) for k in ("ego_velocity", "ego_size", "city_from_ego")}
+        members = []
+        for c, a, b in zip(caches, offsets[:-1], offsets[1:], strict=True):
+            members.append(dataclasses.replace(
+                c,
+                actors=Actors(**{k: getattr(whole.actors, k)[a:b] for k in ACTOR_FIELDS}),
+                **{k: v[a:b] for k, v in per_scene.items()},
+            ))
+        return cls(members, offsets, labels, whole.path, meta, whole.maps, whole.actors,
+                   **per_scene)
 
     def __len__(self) -> int:
         return int(self.offsets[-1])

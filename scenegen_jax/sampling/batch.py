@@ -172,15 +172,19 @@ def sample_split(keys: jax.Array, params: Any, maps, egos: Actors, given: Actors
     index = np.minimum(np.arange(parts * size), n - 1).reshape(parts, size)
     per_map = (maps, egos, given, caps)
 
-    def call(job):  # call c runs on local device c mod D
+    # Call c runs on local device c mod D, with the parameters put there once.
+    on_device = [params] if len(devices) == 1 else [jax.device_put(params, d) for d in devices]
+
+    def call(job):
         c, i = job
+        d = c % len(devices)
         on = (lambda x: x) if len(devices) == 1 else functools.partial(
-            jax.device_put, device=devices[c % len(devices)])
+            jax.device_put, device=devices[d])
         if axis == 0:
             inputs = jax.tree.map(lambda x: on(x[i]), (keys, *per_map))
         else:
             inputs = (on(keys[:, i]), *jax.tree.map(on, per_map))
-        return sample_batch(inputs[0], on(params), *inputs[1:], **kwargs)
+        return sample_batch(inputs[0], on_device[d], *inputs[1:], **kwargs)
 
     outs = list(concurrent_map(call, enumerate(index), workers))
     if len(devices) > 1:  # joined on the first device
