@@ -4,12 +4,33 @@ from __future__ import annotations
 
 import collections
 import os
+import shutil
+import tempfile
 
 import pytest
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DATA_ROOT = os.path.normpath(os.path.join(REPO, "..", "shared", "data", "av2_sensor_mini"))
 WOMD_ROOT = os.path.normpath(os.path.join(REPO, "..", "shared", "data", "womd_mini"))
+
+
+def pytest_configure(config):
+    """One persistent compilation cache for this run, shared by the xdist workers and the
+    CLI subprocesses (they inherit the environment; JAX reads JAX_COMPILATION_CACHE_DIR when
+    it is imported): a program compiled by one test is loaded by the next that builds the
+    same one. The cache starts empty and is removed at the end, so the suite times a fresh
+    machine and never reads or writes the user's ~/.cache."""
+    if hasattr(config, "workerinput") or "JAX_COMPILATION_CACHE_DIR" in os.environ:
+        return  # an xdist worker (inherits the controller's), or set by the caller
+    path = tempfile.mkdtemp(prefix="scenegen-test-jax-cache-")
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = path
+    config._scenegen_compile_cache = path
+
+
+def pytest_unconfigure(config):
+    path = getattr(config, "_scenegen_compile_cache", None)
+    if path:
+        shutil.rmtree(path, ignore_errors=True)
 
 
 @pytest.fixture(scope="session")

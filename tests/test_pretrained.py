@@ -9,6 +9,7 @@ import os
 import jax
 import numpy as np
 import pytest
+from small import CFG
 
 from scenegen_jax.config import get_config
 from scenegen_jax.pretrained import (
@@ -74,7 +75,7 @@ def test_cli_pretrained_samples_as_the_workdir(tmp_path, tiny_train_cache, capsy
     from scenegen_jax.train.loop import train
 
     workdir, model = str(tmp_path / "wd"), str(tmp_path / "model")
-    train(TINY, tiny_train_cache.path, workdir, steps=2, progress=False)
+    train(CFG, tiny_train_cache.path, workdir, steps=2, progress=False)  # the small test model
     main(["export-model", "--workdir", workdir, "--out", model])
     assert json.loads(capsys.readouterr().out)["step"] == 2
     common = ["--data", tiny_train_cache.path, "--num", "2", "--seed", "1", "--batch-size", "1"]

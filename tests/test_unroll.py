@@ -29,12 +29,27 @@ def _batch(cache, idx):
     return gather_batch(cache, np.asarray(idx), CFG)
 
 
+@pytest.fixture(scope="module")
+def reference_case(tiny_train_cache, small_scenes):
+    """Inputs of the fast-against-reference tests, and the reference's terms (full
+    normaliser) and gradient (64 hard negatives), computed once for every variant."""
+    cfg = CFG.replace(bptt_window=16)  # one window: the reference has no truncation either
+    params = random_params(cfg, jax.random.key(1))
+    maps, scene = crop_batch(_batch(tiny_train_cache, small_scenes), jnp.array([0.0, 1.0]), cfg)
+    ref = reference_step_terms(params, cfg, maps, scene, None)
+
+    def ref_loss(p):
+        return -sum(jnp.sum(v) for v in reference_step_terms(p, cfg, maps, scene, 64).values())
+
+    return cfg, params, maps, scene, ref, jax.grad(ref_loss)(params)
+
+
 @pytest.mark.parametrize(
     "chunk_bytes,step_loop",
     [(None, False), (1, False), (3 * 2 * 32 * 32 * 8 * 4, False), (None, True)],
 )
-def test_fast_unroll_equals_plain_reference(tiny_train_cache, small_scenes, chunk_bytes,
-                                            step_loop, monkeypatch):
+def test_fast_unroll_equals_plain_reference(reference_case, chunk_bytes, step_loop,
+                                            monkeypatch):
     """Backbone chunks of the whole window (default here), 1 step, and 3 steps (uneven), all
     unrolled as on CPU; and the steps as the compiled loop of accelerators."""
     import scenegen_jax.backend as backend
@@ -43,11 +58,8 @@ def test_fast_unroll_equals_plain_reference(tiny_train_cache, small_scenes, chun
     if chunk_bytes is not None:
         monkeypatch.setattr(unroll, "HEAD_CHUNK_BYTES", chunk_bytes)
     monkeypatch.setattr(backend, "compiled_step_loop", lambda: step_loop)
-    cfg = CFG.replace(bptt_window=16)  # one window: the reference has no truncation either
-    params = random_params(cfg, jax.random.key(1))
-    maps, scene = crop_batch(_batch(tiny_train_cache, small_scenes), jnp.array([0.0, 1.0]), cfg)
+    cfg, params, maps, scene, ref, g_ref = reference_case
     fast, valid, _ = jax.jit(lambda p: unroll_terms(p, cfg, maps, scene, None))(params)
-    ref = reference_step_terms(params, cfg, maps, scene, None)
     steps = ref["class"].shape[1]
     for k, v in ref.items():
         np.testing.assert_allclose(np.asarray(fast[k])[:, :steps], v, rtol=2e-4, atol=2e-3)
@@ -57,11 +69,7 @@ def test_fast_unroll_equals_plain_reference(tiny_train_cache, small_scenes, chun
         t, _, _ = unroll_terms(p, cfg, maps, scene, 64)
         return -sum(jnp.sum(v) for v in t.values())
 
-    def ref_loss(p):
-        return -sum(jnp.sum(v) for v in reference_step_terms(p, cfg, maps, scene, 64).values())
-
     g_fast = jax.grad(fast_loss)(params)
-    g_ref = jax.grad(ref_loss)(params)
     # float32 sums over hundreds of terms in another order: tolerances relative to the scale
     # of the gradient (the location bias is softmax-invariant: its exact gradient is 0).
     scale = max(float(np.abs(b).max()) for b in jax.tree.leaves(g_ref))
