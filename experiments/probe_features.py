@@ -37,18 +37,26 @@ def load(src: str, arg: int | None):
     return cfg, state.params
 
 
-def vehicle_rows(params, cfg, cache, scenes: int = 24) -> dict[str, np.ndarray]:
+def vehicle_rows(params, cfg, cache, scenes: int = 24, rotate_seed: int | None = None
+                 ) -> dict[str, np.ndarray]:
     """Per vehicle: backbone features, attribute hidden layer, raw map channels at its bin,
-    raw heading head output, heading."""
+    raw heading head output, heading. Scenes in the ego frame, or with `rotate_seed` each
+    turned by a random angle as in training."""
     net = SceneGenNet(cfg)
     idx = np.arange(0, len(cache), max(1, len(cache) // scenes))[:scenes]
     b = len(idx)
-    maps, scene = crop_batch(gather_batch(cache, idx, cfg), jnp.zeros(b), cfg)
+    thetas = np.zeros(b, np.float32)
+    if rotate_seed is not None:
+        thetas = np.random.default_rng(rotate_seed).uniform(0, 2 * np.pi, b).astype(np.float32)
+    maps, scene = crop_batch(gather_batch(cache, idx, cfg), jnp.asarray(thetas), cfg)
     w_in = jnp.concatenate([params["lstm1_map"], params["lstm1_act"], params["lstm1_rec"]], 2)
     draw = jax.vmap(functools.partial(draw_actor, cfg=cfg))
     grid = (b, cfg.grid_size, cfg.grid_size, 9)
     raster = draw(jnp.zeros(grid), scene.ego, jnp.ones((b,), bool))
     state = net.apply({"params": params}, b, method=SceneGenNet.initial_state)
+    # Each map channel normalised over its scene, as GroupNorm with one channel per group
+    # normalises every backbone channel.
+    normed = (maps - maps.mean((1, 2), keepdims=True)) / (maps.std((1, 2), keepdims=True) + 1e-5)
 
     @jax.jit
     def step(state, raster, cls, position):
@@ -66,10 +74,12 @@ def vehicle_rows(params, cfg, cache, scenes: int = 24) -> dict[str, np.ndarray]:
             x = jnp.einsum("bi,bio->bo", x, params[f"attr{i}_w"][cls]) + params[f"attr{i}_b"][cls]
             x = jax.nn.relu(x)
         out = jnp.einsum("bi,bio->bo", x, params["attr2_w"][cls]) + params["attr2_b"][cls]
-        mp = maps.reshape(b, -1, maps.shape[-1])[jnp.arange(b), bins]
-        return ((h1, c1), (h2, c2)), {"features": feat, "hidden": x, "map": mp, "out": out}
+        mp, mpn = (m.reshape(b, -1, m.shape[-1])[jnp.arange(b), bins] for m in (maps, normed))
+        return ((h1, c1), (h2, c2)), {"features": feat, "hidden": x, "map": mp,
+                                      "map_normed": mpn, "out": out}
 
-    rows: dict[str, list] = {k: [] for k in ("features", "hidden", "map", "out", "heading")}
+    rows: dict[str, list] = {k: [] for k in ("features", "hidden", "map", "map_normed", "out",
+                                                 "heading")}
     for t in range(int(jnp.max(jnp.sum(scene.actors.valid, axis=1)))):
         a = jax.tree.map(lambda x, t=t: x[:, t], scene.actors)
         state, got = step(state, raster, a.cls, a.position)
