@@ -8,9 +8,9 @@ import numpy as np
 
 from scenegen_jax.config import get_config
 
-# Small enough to compile quickly: scenes of the fixture with <= 15 actors in the region.
+# Small enough to compile quickly: 9 actor slots, 10 generation steps.
 CFG = get_config("tiny").replace(
-    max_actors=15,
+    max_actors=9,
     bptt_window=8,
     batch_size=2,
     hidden=8,
@@ -22,12 +22,11 @@ CFG = get_config("tiny").replace(
 
 
 def two_small_scenes(cache) -> np.ndarray:
-    """Indices of the first two scenes of `cache` with at most CFG.max_actors in the region."""
+    """Indices of the two scenes of `cache` with the fewest actors in the region (13 and 14 in
+    the tiny fixture: CFG keeps the first 9 in canonical order, a full scene of 10 steps)."""
     pos = cache.actors.position
     inside = cache.actors.valid & (np.abs(pos) < CFG.region_m / 2).all(-1)
-    few = np.flatnonzero(inside.sum(1) <= CFG.max_actors)
-    assert len(few) >= 2
-    return few[:2]
+    return np.sort(np.argsort(inside.sum(1), kind="stable")[:2])
 
 
 def random_params(cfg, key):
@@ -48,7 +47,7 @@ def random_params(cfg, key):
 def train_cmd(cache, workdir, steps, *extra):
     """`scenegen train` of CFG's shapes on `cache` (saving every 2 steps) as a subprocess
     command line, with `extra` options."""
-    overrides = ["max_actors=15", "bptt_window=8", "batch_size=2", "hidden=8", "gn_groups=2"]
+    overrides = ["max_actors=9", "bptt_window=8", "batch_size=2", "hidden=8", "gn_groups=2"]
     return [
         sys.executable,
         "-m",

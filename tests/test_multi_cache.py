@@ -58,12 +58,15 @@ def _write(path, n, seed, kind, cfg=CFG):
     return str(path)
 
 
+B_ACTORS = CFG.max_actors - 4  # the second cache's actors; its slots are 2 * B_ACTORS
+
+
 @pytest.fixture(scope="module")
 def caches(tmp_path_factory):
     """Two caches of CFG's grid from two 'sources'; the second with fewer actor slots."""
     root = tmp_path_factory.mktemp("multi")
     a = _write(root / "a", 7, 0, "av2")
-    b = _write(root / "b", 5, 1, "womd_json", CFG.replace(max_actors=10))
+    b = _write(root / "b", 5, 1, "womd_json", CFG.replace(max_actors=B_ACTORS))
     return a, b
 
 
@@ -145,12 +148,13 @@ def test_union_reads_each_cache_in_place(caches):
     assert isinstance(u, CacheUnion) and len(u) == 12 and u.sizes == [7, 5]
     assert u.labels == ["av2:a", "womd_json:b"]
     assert all(isinstance(m.maps, np.memmap) for m in u.members)  # maps stay on disk
-    assert u.actors.cls.shape == (12, 2 * CFG.max_actors)  # b's 20 slots padded to 30
+    assert u.actors.cls.shape == (12, 2 * CFG.max_actors)  # b's fewer slots padded
     batch = gather_batch(u, np.array([1, 7 + 2]), CFG)
     np.testing.assert_array_equal(batch.canvas[1], cb.maps[2])
     np.testing.assert_array_equal(batch.actors.position[0], ca.actors.position[1])
-    np.testing.assert_array_equal(batch.actors.position[1, :20], cb.actors.position[2])
-    assert not batch.actors.valid[1, 20:].any()
+    slots = 2 * B_ACTORS
+    np.testing.assert_array_equal(batch.actors.position[1, :slots], cb.actors.position[2])
+    assert not batch.actors.valid[1, slots:].any()
     assert u.scene_name(9) == f"{b}: womd_json/002"
     one = load_union(a, CFG)  # one cache: its own arrays, unchanged
     assert one.maps.shape == ca.maps.shape and one.scene_name(3) == "av2/003"

@@ -88,6 +88,7 @@ def test_remat_gives_the_same_loss_and_gradients(tiny_train_cache, small_scenes,
 
     monkeypatch.setattr(unroll, "HEAD_CHUNK_BYTES", 3 * 2 * 32 * 32 * 8 * 4)
     monkeypatch.setattr(backend, "compiled_step_loop", lambda: step_loop)
+    monkeypatch.setattr(backend, "STEP_LOOP_UNROLL", 1)  # the same loop, a smaller body
     maps, scene = crop_batch(_batch(tiny_train_cache, small_scenes), jnp.array([0.0, 1.0]), CFG)
     params = random_params(CFG, jax.random.key(2))
 
@@ -104,20 +105,30 @@ def test_remat_gives_the_same_loss_and_gradients(tiny_train_cache, small_scenes,
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6 * float(np.abs(b).max()))
 
 
-@pytest.mark.parametrize("remat,compiled_loop", [(False, False), (True, True)])
-def test_window_by_window_gradient_equals_autodiff(tiny_train_cache, small_scenes, remat,
-                                                   compiled_loop, monkeypatch):
-    """The train step's gradient, taken one window at a time (windows of 5, four per scene;
-    windows and steps in Python loops as on CPU, or in the `lax.scan`s of accelerators),
-    equals jax.grad of the mean scene NLL through the whole unroll (Python loops)."""
-    import scenegen_jax.backend as backend
-
-    cfg = CFG.replace(bptt_window=5, remat=remat)
-    assert num_windows(cfg) == 4
+@pytest.fixture(scope="module")
+def autodiff_case(tiny_train_cache, small_scenes):
+    """Inputs of the window-by-window test, and the mean scene NLL, its stats and its
+    gradient by plain autodiff through the whole unroll, computed once for every variant."""
+    cfg = CFG.replace(bptt_window=3)
     maps, scene = crop_batch(_batch(tiny_train_cache, small_scenes), jnp.array([0.5, 2.0]), cfg)
     params = random_params(cfg, jax.random.key(4))
-    (loss, stats), grads = jax.jit(jax.value_and_grad(loss_fn, has_aux=True), static_argnums=1)(
+    value = jax.jit(jax.value_and_grad(loss_fn, has_aux=True), static_argnums=1)(
         params, cfg, maps, scene)
+    return maps, scene, params, value
+
+
+@pytest.mark.parametrize("remat,compiled_loop", [(False, False), (True, True)])
+def test_window_by_window_gradient_equals_autodiff(autodiff_case, remat, compiled_loop,
+                                                   monkeypatch):
+    """The train step's gradient, taken one window at a time (windows of 3, four per scene, the
+    last of one step; windows and steps in Python loops as on CPU, or in the `lax.scan`s of
+    accelerators), equals jax.grad of the mean scene NLL through the whole unroll (Python
+    loops)."""
+    import scenegen_jax.backend as backend
+
+    cfg = CFG.replace(bptt_window=3, remat=remat)
+    assert num_windows(cfg) == 4
+    maps, scene, params, ((loss, stats), grads) = autodiff_case
     monkeypatch.setattr(backend, "compiled_window_loop", lambda: compiled_loop)
     monkeypatch.setattr(backend, "compiled_step_loop", lambda: compiled_loop)
     unrolled, windowed = jax.jit(
