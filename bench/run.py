@@ -316,7 +316,7 @@ def sample_case(cfg, params, args) -> dict:
 
 
 # ----------------------------------------------------------------------------- orchestration
-def _run(cmd: list[str], timeout: float = 1800) -> list[dict]:
+def _run(cmd: list[str], is_ours: bool, timeout: float = 1800) -> list[dict]:
     print("$", " ".join(cmd), file=sys.stderr, flush=True)
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=REPO)
     rows = [json.loads(line[7:]) for line in p.stdout.splitlines() if line.startswith("RESULT ")]
@@ -324,6 +324,7 @@ def _run(cmd: list[str], timeout: float = 1800) -> list[dict]:
         tail = (p.stderr or p.stdout)[-2000:]
         return [{"what": "error", "cmd": cmd, "returncode": p.returncode, "stderr_tail": tail}]
     for r in rows:
+        r.update(ours=is_ours, **cpu_fields(is_ours))
         r["cmd"] = " ".join(os.path.relpath(c, REPO) if c.startswith(REPO) else c for c in cmd)
         print(json.dumps({k: v for k, v in r.items() if k not in ("all_s", "cmd")}),
               file=sys.stderr, flush=True)
@@ -334,7 +335,7 @@ def ours(kind: str, **kw) -> list[dict]:
     cmd = [sys.executable, os.path.join(HERE, "run.py"), "case", kind]
     for k, v in kw.items():
         cmd += [f"--{k.replace('_', '-')}", str(v)]
-    return _run(cmd)
+    return _run(cmd, True)
 
 
 def torch_env() -> str | None:
@@ -350,9 +351,25 @@ def torch_env() -> str | None:
 
 
 def peer(py: str, sub: str, *extra: str, script: str = os.path.join(TORCH_REF, "bench.py")):
-    rows = _run([py, script, sub, *extra])
-    for r in rows:
-        r["ours"] = False
+    return _run([py, script, sub, *extra], False)
+
+
+FIRST = os.path.join(HERE, "first_result.py")
+
+
+def first_results(args) -> list[dict]:
+    """Process start to first result, no compilation cache (`first_result.py`): ours for
+    `tiny`, `cpu` and `paper` at grid 128, the reference at grid 128; each in a fresh
+    process started on an idle machine."""
+    rows = []
+    py = None if args.only == "ours" else torch_env()
+    for kind in ("train", "score", "sample"):
+        for config in ("tiny", "cpu", "paper") if args.only != "torch" else ():
+            wait_quiet()
+            rows += _run([sys.executable, FIRST, "ours", kind, "--config", config], True)
+        if py:
+            wait_quiet()
+            rows += _run([py, FIRST, "ref", kind, "--grid", "128"], False)
     return rows
 
 
@@ -395,6 +412,10 @@ def summarize(rows: list[dict]) -> dict:
 
     refs = [r for r in rows if r.get("ours") is False and r.get("median_s")]
     out = {}
+    for r in rows:  # seconds from process start to the first result (`first_results`)
+        if r.get("what", "").startswith("first_") and "first_result_s" in r:
+            who = f"ours_{r['config']}_grid{r['grid']}" if r["ours"] else f"ref_grid{r['grid']}"
+            out.setdefault(f"{r['what']}_s", {})[who] = round(r["first_result_s"], 1)
     for o in rows:
         if not (o.get("ours") and o.get("config") == "paper" and o.get("median_s")):
             continue
@@ -512,6 +533,46 @@ def accel_peer(args) -> list[dict]:
     return rows
 
 
+ISA_CAP_OPTION = "--xla_cpu_max_isa="
+
+
+def cpu_isa() -> str:
+    """The widest x86 vector extension of this CPU that the kernels use: AMX, AVX-512 or
+    AVX2 (from /proc/cpuinfo's flags)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            flags = next((line.split(":", 1)[1].split() for line in f
+                          if line.startswith("flags")), [])
+    except OSError:
+        flags = []
+    for flag, name in (("amx_tile", "AMX"), ("avx512f", "AVX-512"), ("avx2", "AVX2")):
+        if flag in flags:
+            return name
+    return platform.machine()
+
+
+def cpu_fields(is_ours: bool) -> dict:
+    """What every row records about the CPU: its model, its vector ISA and the cap the run
+    put on it (ours: XLA's `--xla_cpu_max_isa` in XLA_FLAGS; the reference: oneDNN's
+    ONEDNN_MAX_CPU_ISA), None when uncapped."""
+    if is_ours:
+        flags = os.environ.get("XLA_FLAGS", "").split()
+        cap = next((f[len(ISA_CAP_OPTION):] for f in flags if f.startswith(ISA_CAP_OPTION)),
+                   None)
+    else:
+        cap = os.environ.get("ONEDNN_MAX_CPU_ISA")
+    return {"cpu_model": cpu_model(), "isa": cpu_isa(), "isa_cap": cap}
+
+
+def cap_isa(isa: str) -> None:
+    """Caps the vector ISA of every case run from here on: XLA's for ours, oneDNN's for the
+    reference (both spell AVX2 the same)."""
+    flags = [f for f in os.environ.get("XLA_FLAGS", "").split()
+             if not f.startswith(ISA_CAP_OPTION)]
+    os.environ["XLA_FLAGS"] = " ".join([*flags, ISA_CAP_OPTION + isa])
+    os.environ["ONEDNN_MAX_CPU_ISA"] = isa
+
+
 def cpu_model() -> str:
     """The CPU's model name, family and model (/proc/cpuinfo): timings differ 2x between the
     machines this runs on."""
@@ -534,11 +595,13 @@ def main_all(args) -> None:
 
     rows: list[dict] = [{
         "what": "env", "machine": platform.processor() or platform.machine(),
-        "cpu_model": cpu_model(),
+        **cpu_fields(True), "ref_isa_cap": cpu_fields(False)["isa_cap"],
         "cpus": os.cpu_count(), "python": platform.python_version(), "jax": jax.__version__,
         **device_fields(), "date": time.strftime("%Y-%m-%d %H:%M:%S"),
     }]
     accel = args.suite == "accel"
+    if not accel and not args.no_first:
+        rows += first_results(args)
     if args.only in (None, "ours"):
         rows += accel_ours(args) if accel else cpu_ours(args)
         rows.append({**ceiling_ours(args.runs), "ours": True})
@@ -566,7 +629,14 @@ def main() -> None:
                    help="accel: the paper preset on the accelerator jax finds, against the "
                    "reference on the same CUDA device (bench/results_accel.json)")
     p.add_argument("--ref", default=TORCH_REF, help="the reference's folder (accel suite)")
+    p.add_argument("--isa", choices=("AVX2",),
+                   help="cap both sides' vector ISA (XLA_FLAGS --xla_cpu_max_isa and "
+                   "ONEDNN_MAX_CPU_ISA): the AVX2-only CPUs on any x86 machine "
+                   "(default out: bench/results_avx2.json)")
+    p.add_argument("--no-first", action="store_true",
+                   help="skip the time-to-first-result rows (bench/first_result.py)")
     sub = p.add_subparsers(dest="cmd")
+    sub.add_parser("first", help="only the time-to-first-result rows (both sides, or --only)")
     c = sub.add_parser("case", help="one measurement of ours, in this process")
     c.add_argument("kind", choices=("train", "score", "sample"))
     c.add_argument("--config", default="paper", choices=("paper", "cpu"))
@@ -589,9 +659,15 @@ def main() -> None:
     c.add_argument("--workdir")
     c.add_argument("--data")
     args = p.parse_args()
-    args.out = args.out or os.path.join(
-        HERE, "results_accel.json" if args.suite == "accel" else "results.json")
-    if args.cmd == "case":
+    if args.isa:
+        cap_isa(args.isa)
+    default = {"accel": "results_accel.json"}.get(args.suite) or (
+        "results_avx2.json" if args.isa else "results.json")
+    args.out = args.out or os.path.join(HERE, default)
+    if args.cmd == "first":
+        rows = first_results(args)
+        print(json.dumps([{k: v for k, v in r.items() if k != "cmd"} for r in rows], indent=1))
+    elif args.cmd == "case":
         print("RESULT " + json.dumps(run_case(args)), flush=True)
     else:
         main_all(args)

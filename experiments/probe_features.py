@@ -21,7 +21,7 @@ from scenegen_jax.config import get_config
 from scenegen_jax.data.cache import load_cache
 from scenegen_jax.distributions import params as P
 from scenegen_jax.likelihood.batch import crop_batch, gather_batch
-from scenegen_jax.model.network import SceneGenNet, conv, lstm_gates
+from scenegen_jax.model.network import SceneGenNet
 from scenegen_jax.raster.actors import draw_actor
 from scenegen_jax.scene import VEHICLE, bin_index
 from scenegen_jax.train.step import init_state
@@ -49,7 +49,6 @@ def vehicle_rows(params, cfg, cache, scenes: int = 24, rotate_seed: int | None =
     if rotate_seed is not None:
         thetas = np.random.default_rng(rotate_seed).uniform(0, 2 * np.pi, b).astype(np.float32)
     maps, scene = crop_batch(gather_batch(cache, idx, cfg), jnp.asarray(thetas), cfg)
-    w_in = jnp.concatenate([params["lstm1_map"], params["lstm1_act"], params["lstm1_rec"]], 2)
     draw = jax.vmap(functools.partial(draw_actor, cfg=cfg))
     grid = (b, cfg.grid_size, cfg.grid_size, 9)
     raster = draw(jnp.zeros(grid), scene.ego, jnp.ones((b,), bool))
@@ -58,14 +57,16 @@ def vehicle_rows(params, cfg, cache, scenes: int = 24, rotate_seed: int | None =
     # normalises every backbone channel.
     normed = (maps - maps.mean((1, 2), keepdims=True)) / (maps.std((1, 2), keepdims=True) + 1e-5)
 
+    def apply(method, *args):
+        return net.apply({"params": params}, *args, method=method)
+
+    map_gates = apply(SceneGenNet.map_gates, maps)  # every map input option of the config
+
     @jax.jit
     def step(state, raster, cls, position):
-        (h1, c1), (h2, c2) = state
-        h1, c1 = lstm_gates(conv(jnp.concatenate([maps, raster, h1], -1), w_in,
-                                 params["lstm1_b"]), c1)
-        h2, c2 = lstm_gates(conv(jnp.concatenate([h1, h2], -1), params["lstm2_w"],
-                                 params["lstm2_b"]), c2)
-        f = net.apply({"params": params}, h2, method=SceneGenNet.features)
+        state, h2 = apply(SceneGenNet.recur, state, map_gates + apply(SceneGenNet.actor_gates,
+                                                                      raster))
+        f = apply(SceneGenNet.features, h2)
         bins = bin_index(position, cfg)
         feat = f.reshape(b, -1, f.shape[-1])[jnp.arange(b), bins]
         cls = jnp.clip(cls, 0, 2)
@@ -75,8 +76,7 @@ def vehicle_rows(params, cfg, cache, scenes: int = 24, rotate_seed: int | None =
             x = jax.nn.relu(x)
         out = jnp.einsum("bi,bio->bo", x, params["attr2_w"][cls]) + params["attr2_b"][cls]
         mp, mpn = (m.reshape(b, -1, m.shape[-1])[jnp.arange(b), bins] for m in (maps, normed))
-        return ((h1, c1), (h2, c2)), {"features": feat, "hidden": x, "map": mp,
-                                      "map_normed": mpn, "out": out}
+        return state, {"features": feat, "hidden": x, "map": mp, "map_normed": mpn, "out": out}
 
     rows: dict[str, list] = {k: [] for k in ("features", "hidden", "map", "map_normed", "out",
                                                  "heading")}

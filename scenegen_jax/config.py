@@ -77,6 +77,13 @@ class Config:
         (beyond the paper's input; off in the presets). The network is otherwise fully
         convolutional and cannot tell the top of the grid from the middle, where the first
         actor in canonical order stands (experiments/results/README.md, session 15).
+      orientation_bins: K more input channels, the lane orientation binned over K equal
+        sectors of the circle (each lane pixel splits its weight between the two sectors
+        nearest its direction; 0 disables, the presets' default). The same information as the
+        (cos, sin) channels, in a code that per-scene normalisation keeps: GroupNorm with one
+        channel per group reduces cos(lane direction) on a straight road to its sign, but a
+        sector's mask stays a mask (experiments/results/README.md, session 17). Needs the
+        `lanes` layers.
       seed: base random seed.
     """
 
@@ -103,6 +110,7 @@ class Config:
     map_dropout: float = 0.0
     remat: bool = False
     coord_channels: bool = False
+    orientation_bins: int = 0
     seed: int = 0
 
     def __post_init__(self):
@@ -204,6 +212,12 @@ def config_problems(cfg: Config) -> list[str]:
     if isinstance(cfg.hidden, int) and isinstance(cfg.gn_groups, int) and cfg.gn_groups >= 1 \
             and cfg.hidden % cfg.gn_groups:
         out.append(f"gn_groups: must divide hidden ({cfg.hidden}), got {cfg.gn_groups}")
+    bins = cfg.orientation_bins
+    if isinstance(bins, bool) or not isinstance(bins, int) or bins < 0:
+        out.append(f"orientation_bins: must be an integer >= 0, got {bins!r}")
+    elif bins and "lanes" not in cfg.map_layers:
+        out.append("orientation_bins: needs the 'lanes' map layers (the lane orientation), "
+                   f"got map_layers {cfg.map_layers!r}")
     for name in ("m_per_px", "learning_rate", "pedestrian_size_m"):
         v = getattr(cfg, name)
         if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):

@@ -22,6 +22,7 @@ from scenegen_jax.model.network import (
     group_norm,
     lstm_gates,
     lstm_gates_reference,
+    orientation_sectors,
 )
 from scenegen_jax.train.data import batch_indices
 from scenegen_jax.train.step import (
@@ -226,6 +227,73 @@ def test_coordinate_channels_tell_rows_apart_and_start_at_zero_from_a_warm_start
     assert not np.any(np.asarray(extended["lstm1_coord"]))
     want = SceneGenNet(CFG).apply({"params": source}, flat_map, method=SceneGenNet.map_gates)
     got = net.apply({"params": extended}, flat_map, method=SceneGenNet.map_gates)
+    np.testing.assert_array_equal(got, want)
+
+
+def test_initial_parameters_are_the_same_compiled_alone_or_inside_a_trace():
+    """`init_params` compiles its initialisers on their own (at XLA:CPU's lowest optimisation
+    level) unless it is called inside a trace, where it is traced with the caller: both give
+    the same parameters, and `jax.eval_shape` of it works (restoring a checkpoint uses it)."""
+    from scenegen_jax.model.network import init_params
+
+    alone = init_params(CFG, jax.random.key(3))
+    traced = jax.jit(lambda k: init_params(CFG, k))(jax.random.key(3))
+    shapes = jax.eval_shape(lambda: init_params(CFG, jax.random.key(3)))
+    assert jax.tree.structure(alone) == jax.tree.structure(traced) == jax.tree.structure(shapes)
+    for a, t, s in zip(jax.tree.leaves(alone), jax.tree.leaves(traced), jax.tree.leaves(shapes),
+                       strict=True):
+        assert a.shape == s.shape
+        np.testing.assert_allclose(a, t, rtol=1e-6, atol=1e-7)
+
+
+def test_orientation_sectors_split_each_direction_between_the_two_nearest_sectors():
+    """Hand-computed cases for K = 8 (sector centres every 45 degrees), the wrap at 360
+    degrees, lengths below 1 (a lane's blurred edge) and the zero vector (off every lane)."""
+    deg = np.radians([0.0, 45.0, 22.5, 350.0, 180.0, 100.0, 0.0])
+    length = np.array([1.0, 1.0, 1.0, 1.0, 0.5, 1.0, 0.0])
+    got = np.asarray(orientation_sectors(jnp.asarray(length * np.cos(deg)),
+                                         jnp.asarray(length * np.sin(deg)), 8))
+    want = np.zeros((7, 8))
+    want[0, 0] = 1.0
+    want[1, 1] = 1.0
+    want[2, [0, 1]] = 0.5
+    want[3, [7, 0]] = [2 / 9, 7 / 9]  # 350 deg: 10 deg short of sector 0, 35 past sector 7
+    want[4, 4] = 0.5
+    want[5, [2, 3]] = [7 / 9, 2 / 9]  # 100 deg: 10 past sector 2 (90 deg)
+    np.testing.assert_allclose(got, want, atol=1e-6)
+    # Turning every direction by one sector width moves its weights one sector on.
+    a = np.random.default_rng(0).uniform(0, 2 * np.pi, 50)
+    turned = orientation_sectors(jnp.cos(a + np.pi / 3), jnp.sin(a + np.pi / 3), 6)
+    np.testing.assert_allclose(turned, np.roll(orientation_sectors(jnp.cos(a), jnp.sin(a), 6),
+                                               1, axis=-1), atol=1e-5)
+
+
+def test_orientation_bins_tell_lane_directions_apart_and_start_at_zero_from_a_warm_start():
+    """With `orientation_bins` layer 1's gates on a lane depend on which way the lane points
+    (the same lane mask with opposite directions gives different gates); extended from a
+    model without them, the sectors' weights start at zero and change nothing."""
+    from scenegen_jax.train.loop import warm_start
+
+    binned = CFG.replace(orientation_bins=4)
+    net = SceneGenNet(binned)
+    ic, is_ = (CFG.map_channels.index(c) for c in ("lane_orientation_cos",
+                                                     "lane_orientation_sin"))
+    east = np.zeros((1, CFG.grid_size, CFG.grid_size, len(CFG.map_channels)), np.float32)
+    east[0, 10:14, :, CFG.map_channels.index("lane_vehicle")] = 1.0
+    west = east.copy()
+    east[0, 10:14, :, ic], west[0, 10:14, :, ic] = 1.0, -1.0
+    assert is_ != ic
+    params = init_state(binned, seed=2).params
+    gates = [net.apply({"params": params}, jnp.asarray(m), method=SceneGenNet.map_gates)
+             for m in (east, west)]
+    assert float(jnp.abs(gates[0] - gates[1])[0, 12].max()) > 1e-3
+
+    source = init_state(CFG, seed=1).params
+    extended = warm_start(params, source, "src")
+    assert not np.any(np.asarray(extended["lstm1_orient"]))
+    want = SceneGenNet(CFG).apply({"params": source}, jnp.asarray(east),
+                                  method=SceneGenNet.map_gates)
+    got = net.apply({"params": extended}, jnp.asarray(east), method=SceneGenNet.map_gates)
     np.testing.assert_array_equal(got, want)
 
 

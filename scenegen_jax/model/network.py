@@ -17,8 +17,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from scenegen_jax.backend import init_compiler_options
 from scenegen_jax.config import Config
 from scenegen_jax.raster.actors import ACTOR_CHANNELS, window_origin, window_size
+from scenegen_jax.raster.map import ORIENTATION_CHANNELS
 from scenegen_jax.scene import NUM_CLASSES
 
 NUM_ACTOR_CHANNELS = len(ACTOR_CHANNELS)
@@ -29,6 +31,15 @@ def attribute_sizes(k: int) -> tuple[int, int, int]:
     from scenegen_jax.distributions import BOX_PARAMS, HEADING_PARAMS, VELOCITY_PARAMS
 
     return BOX_PARAMS(k), HEADING_PARAMS(k), VELOCITY_PARAMS(k)
+
+
+def orientation_sectors(cos, sin, k: int):
+    """The lane orientation (cos, sin) [...] as K sector weights [..., K]: the direction's
+    weight (its length: 1 inside a lane, 0 outside) split linearly between the two of the K
+    equal sectors whose centres (0, 2 pi / K, ...) are nearest to it."""
+    u = jnp.arctan2(sin, cos)[..., None] * (k / (2 * np.pi))  # in sector widths
+    d = jnp.abs(jnp.mod(u - jnp.arange(k) + k / 2, k) - k / 2)  # circular distance to centres
+    return jnp.hypot(cos, sin)[..., None] * jnp.maximum(0.0, 1.0 - d)
 
 
 def conv(x, w, b=None):
@@ -170,6 +181,9 @@ class SceneGenNet(nn.Module):
             self.lstm1_map = self.param("lstm1_map", conv_init, (5, 5, cm, 4 * h))
         if cfg.coord_channels:
             self.lstm1_coord = self.param("lstm1_coord", conv_init, (5, 5, 2, 4 * h))
+        if cfg.orientation_bins:
+            self.lstm1_orient = self.param(
+                "lstm1_orient", conv_init, (5, 5, cfg.orientation_bins, 4 * h))
         self.lstm1_act = self.param("lstm1_act", conv_init, (5, 5, NUM_ACTOR_CHANNELS, 4 * h))
         self.lstm1_rec = self.param("lstm1_rec", conv_init, (5, 5, h, 4 * h))
         self.lstm1_b = self.param("lstm1_b", lstm_bias, (4 * h,))
@@ -226,13 +240,19 @@ class SceneGenNet(nn.Module):
 
     # ------------------------------------------------------------------ recurrence
     def map_gates(self, map_raster):
-        """Map share of ConvLSTM layer 1's input gates (with its bias, and the pixel coordinates'
-        share with `coord_channels`): [B,H,W,Cm] -> [B,H,W,4h]."""
+        """Map share of ConvLSTM layer 1's input gates (with its bias, the lane orientation
+        sectors' share with `orientation_bins`, and the pixel coordinates' share with
+        `coord_channels`): [B,H,W,Cm] -> [B,H,W,4h]."""
         b, hh, ww, _ = map_raster.shape
         if not self.cfg.map_channels:
             gates = jnp.broadcast_to(self.lstm1_b, (b, hh, ww, 4 * self.cfg.hidden))
         else:
             gates = conv(map_raster, self.lstm1_map, self.lstm1_b)
+        if self.cfg.orientation_bins:
+            ic, is_ = (self.cfg.map_channels.index(c) for c in ORIENTATION_CHANNELS)
+            sectors = orientation_sectors(map_raster[..., ic], map_raster[..., is_],
+                                          self.cfg.orientation_bins)
+            gates = gates + conv(sectors.astype(gates.dtype), self.lstm1_orient)
         if self.cfg.coord_channels:
             rows, cols = jnp.meshgrid(jnp.linspace(-1.0, 1.0, hh), jnp.linspace(-1.0, 1.0, ww),
                                       indexing="ij")
@@ -370,10 +390,21 @@ class SceneGenNet(nn.Module):
 
 
 def init_params(cfg: Config, key):
-    """Initial parameters (a plain PyTree) for `cfg`."""
+    """Initial parameters (a plain PyTree) for `cfg`.
+
+    Compiled: flax creates the parameters by running one step of the network, which, run
+    eagerly, dispatches its operations one by one (8 s for `tiny` on 2 cores); compiled, XLA
+    drops that step (only the parameters are returned) and keeps their initialisers
+    (`backend.init_compiler_options`: 1.2 s)."""
     net = SceneGenNet(cfg)
     h = cfg.grid_size
     m = jnp.zeros((1, h, h, len(cfg.map_channels)))
     a = jnp.zeros((1, h, h, NUM_ACTOR_CHANNELS))
     z = jnp.zeros((1,), jnp.int32)
-    return net.init(key, m, a, z, z)["params"]
+
+    def init(k):
+        return net.init(k, m, a, z, z)["params"]
+
+    if isinstance(key, jax.core.Tracer):  # inside a trace (`jax.eval_shape`, `jax.jit`)
+        return init(key)
+    return jax.jit(init, compiler_options=init_compiler_options())(key)

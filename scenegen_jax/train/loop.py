@@ -242,15 +242,16 @@ def train(
 # Parameters a warm start may lack in its source: the map and coordinate shares of layer 1's
 # input convolution (a source trained without map layers or coordinate channels). Zero, they
 # leave the source's model as is.
-ZERO_IF_MISSING = ("lstm1_map", "lstm1_coord")
+ZERO_IF_MISSING = ("lstm1_map", "lstm1_coord", "lstm1_orient")
 
 
 def warm_start(params, source, name: str):
     """`params` with every parameter taken from `source` (same names and shapes), so training
-    starts from the source's model. The only parameters the source may lack are the map and
-    coordinate shares of layer 1's input convolution (`ZERO_IF_MISSING`): they start at zero
-    (the map or coordinates then change nothing until training moves them), so a model can
-    be extended with map layers or `coord_channels`.
+    starts from the source's model. The only parameters the source may lack are the map,
+    lane orientation sector and coordinate shares of layer 1's input convolution
+    (`ZERO_IF_MISSING`): they start at zero (those inputs then change nothing until training
+    moves them), so a model can be extended with map layers, `orientation_bins` or
+    `coord_channels`.
 
     Raises:
       ValueError naming `name` and the parameter on a shape mismatch or another missing one.

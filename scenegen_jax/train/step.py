@@ -11,7 +11,7 @@ from jax.flatten_util import ravel_pytree
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from scenegen_jax.backend import DATA_AXIS, release_freed_memory
+from scenegen_jax.backend import DATA_AXIS, release_freed_memory, train_compiler_options
 from scenegen_jax.config import Config
 from scenegen_jax.likelihood.batch import Batch, crop_batch
 from scenegen_jax.likelihood.terms import mean_nll
@@ -113,8 +113,10 @@ def make_train_step(cfg: Config, mesh: Mesh | None = None):
     """The jitted train step; with a mesh, the batch is sharded over `data` (each device
     unrolls its own scenes, `shard_map`) and the state replicated. The state argument is
     donated."""
+    options = train_compiler_options()
     if mesh is None:
-        return jax.jit(lambda state, batch: train_step(state, batch, cfg), donate_argnums=0)
+        return jax.jit(lambda state, batch: train_step(state, batch, cfg), donate_argnums=0,
+                       compiler_options=options)
     if cfg.batch_size % mesh.size:
         raise ValueError(f"batch_size {cfg.batch_size} is not divisible by {mesh.size} devices")
     per_device = jax.shard_map(
@@ -133,6 +135,7 @@ def make_train_step(cfg: Config, mesh: Mesh | None = None):
         in_shardings=(replicated, data),
         out_shardings=(replicated, replicated),
         donate_argnums=0,
+        compiler_options=options,
     )
 
 

@@ -1,0 +1,146 @@
+"""Time to the first result: seconds from this process's start (the kernel's start time of the
+process, so the interpreter's start and every import count) to the first finished train step,
+scoring batch or sampling batch, with no compilation cache. What a user waits for before a
+run shows any progress. One measurement per process; prints one `RESULT {json}` line.
+
+    .venv/bin/python bench/first_result.py ours train --config tiny
+    .venv/bin/python bench/first_result.py ours score --config paper --grid 128
+    bench/.venv-torch/bin/python bench/first_result.py ref train --grid 128   # the reference
+
+Ours runs what the command line runs for the first batch of a preset as it ships (`tiny`,
+`cpu`; `paper` at `--grid`, T 25, B 1, the reference's shape): `compile_train_step` and one
+step on a batch of the preset's size; the scorer's compiled call on the `score` command's
+default batch (8 scenes, one call per core); `sample_scenes` on 8 maps (the stop logit lowered
+as in `run.py`'s sampling case, so scenes fill rather than stop at once). Synthetic scenes
+(`synthetic.py`): the shapes, not the data, set the compile time. The reference (eager
+PyTorch, `../shared/bench/torch_ref/model.py`) runs one train step, one scoring forward pass
+and one sampling step at the same grid, T and B.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+TORCH_REF = os.path.normpath(os.path.join(HERE, "..", "..", "shared", "bench", "torch_ref"))
+MAP_CHANNELS = 11  # as run.py: our lanes 9 + drivable 1 + crosswalks 1
+BATCH = 8  # the `score` and `sample` commands' default --batch-size
+
+
+def process_age_s() -> float:
+    """Seconds since this process started (Linux: /proc/self/stat field 22 against
+    /proc/uptime; 10 ms resolution)."""
+    with open("/proc/self/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()  # after "pid (comm)": field 3 onwards
+    with open("/proc/uptime") as f:
+        uptime = float(f.read().split()[0])
+    return uptime - int(fields[19]) / os.sysconf("SC_CLK_TCK")
+
+
+def ours(kind: str, config: str, grid: int) -> dict:
+    os.environ["JAX_ENABLE_COMPILATION_CACHE"] = "false"
+    import jax
+
+    jax.config.update("jax_enable_compilation_cache", False)
+    from synthetic import synthetic_batch
+
+    from scenegen_jax.backend import concurrent_map, default_workers, scoring_compiler_options
+    from scenegen_jax.config import get_config
+    from scenegen_jax.eval.nll import score_batch
+    from scenegen_jax.likelihood.batch import crop_batch
+    from scenegen_jax.scene import STOP
+    from scenegen_jax.train.step import compile_train_step, init_state
+
+    if config == "paper":  # the reference's shape: T 25 (24 actors and the stop), B 1
+        cfg = get_config("paper", grid_size=grid, m_per_px=80.0 / grid, max_actors=24,
+                         bptt_window=25, batch_size=1)
+    else:
+        cfg = get_config(config)
+    cfg = cfg.replace(rotate_augment=False)
+    t_import = process_age_s()
+    state = init_state(cfg)
+    out = {"what": f"first_{kind}", "ours": True, "config": cfg.name, "grid": cfg.grid_size,
+           "max_actors": cfg.max_actors, "imports_s": t_import}
+    if kind == "train":
+        batch = jax.device_put(synthetic_batch(cfg, cfg.batch_size, cfg.max_actors))
+        t = process_age_s()
+        step = compile_train_step(cfg, state, batch)
+        out["compile_s"] = process_age_s() - t
+        jax.block_until_ready(step(state, batch))
+        out["batch"] = cfg.batch_size
+    elif kind == "score":
+        b = 1 if config == "paper" else BATCH
+        workers = min(default_workers(), b)
+        batch = synthetic_batch(cfg.inference(), b, cfg.max_actors, seed=1)
+        part = b // workers
+        parts = [jax.tree.map(lambda x, i=i: x[i * part:(i + 1) * part], batch)
+                 for i in range(workers)]
+        score = jax.jit(lambda p, b: score_batch(p, b, cfg.inference())["class"],
+                        compiler_options=scoring_compiler_options())
+        jax.block_until_ready(list(concurrent_map(lambda x: score(state.params, x), parts,
+                                                  workers)))
+        out.update(batch=b, workers=workers)
+    else:
+        from scenegen_jax.sampling import sample_scenes
+
+        b = 1 if config == "paper" else BATCH
+        params = jax.tree.map(lambda x: x, state.params)
+        params["class_mlp2"]["bias"] = params["class_mlp2"]["bias"].at[STOP].add(-10.0)
+        host = synthetic_batch(cfg, b, 0, seed=2)
+        maps, scenes = crop_batch(host, jax.numpy.zeros(b), cfg)
+        s = sample_scenes(jax.random.key(0), params, cfg, maps, scenes.ego)
+        jax.block_until_ready(s.actors.valid)
+        out["batch"] = b
+    out["first_result_s"] = process_age_s()
+    out["backend"] = jax.default_backend()
+    return out
+
+
+def ref(kind: str, grid: int) -> dict:
+    import torch
+
+    torch.set_num_threads(int(os.environ.get("REF_THREADS", "2")))  # as its bench.py
+    sys.path.insert(0, TORCH_REF)
+    import model as M
+
+    t_import = process_age_s()
+    torch.manual_seed(0)
+    g = torch.Generator().manual_seed(0)
+    net = M.SceneGen(map_ch=MAP_CHANNELS)
+    steps, b = 25, 1
+    if kind == "sample":
+        net.eval()
+        scene = M.random_scene(net, b, grid, grid, n_existing=16, gen=g)
+        M.sample_step(net, scene, 10)
+    else:
+        x_seq, tgt = M.random_inputs(steps, b, MAP_CHANNELS, grid, grid, gen=g)
+        if kind == "train":
+            net.train()
+            M.train_step(net, torch.optim.Adam(net.parameters(), lr=1e-4), x_seq, tgt)
+        else:
+            net.eval()
+            with torch.inference_mode():
+                M.scene_nll(net, x_seq, tgt)
+    return {"what": f"first_{kind}", "ours": False, "grid": grid, "batch": b,
+            "steps": steps, "imports_s": t_import, "first_result_s": process_age_s(),
+            "threads": torch.get_num_threads()}
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("side", choices=("ours", "ref"))
+    p.add_argument("kind", choices=("train", "score", "sample"))
+    p.add_argument("--config", default="tiny", choices=("tiny", "cpu", "paper"))
+    p.add_argument("--grid", type=int, default=128, help="paper preset and the reference")
+    a = p.parse_args()
+    sys.path.insert(0, HERE)
+    row = ours(a.kind, a.config, a.grid) if a.side == "ours" else ref(a.kind, a.grid)
+    print("RESULT " + json.dumps(row), flush=True)
+
+
+if __name__ == "__main__":
+    main()
