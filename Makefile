@@ -40,5 +40,6 @@ demo: install
 clean:
 	rm -rf $(OUT) .pytest_cache
 
+# `make bench ISA=AVX2` caps both sides to AVX2 (bench/results_avx2.json).
 bench: install
-	$(BIN)/python bench/run.py --workdir runs/cpu_map --data runs/cache_cpu_val --out bench/results.json
+	$(BIN)/python bench/run.py --workdir runs/cpu_map --data runs/cache_cpu_val $(if $(ISA),--isa $(ISA))

@@ -239,9 +239,9 @@ def train(
     return state
 
 
-# Parameters a warm start may lack in its source: the map and coordinate shares of layer 1's
-# input convolution (a source trained without map layers or coordinate channels). Zero, they
-# leave the source's model as is.
+# Parameters a warm start may lack in its source: the map, lane orientation sector and
+# coordinate shares of layer 1's input convolution (a source trained without those inputs).
+# Zero, they leave the source's model as is.
 ZERO_IF_MISSING = ("lstm1_map", "lstm1_coord", "lstm1_orient")
 
 
