@@ -4,10 +4,15 @@ reference (`../shared/bench/torch_ref`), on the same shapes, in one run; JSON ou
     .venv/bin/python bench/run.py                      # everything -> bench/results.json
     .venv/bin/python bench/run.py --only ours          # skip the reference
     .venv/bin/python bench/run.py case train --grid 128 --steps 25 --batch 1   # one case
+    .venv/bin/python bench/run.py first              # only the time-to-first-result rows
+    .venv/bin/python bench/run.py --isa AVX2         # both sides capped to AVX2
     python bench/run.py --suite accel     # on a GPU: paper preset vs the reference on the
                                           # same CUDA device -> bench/results_accel.json
 
-Every case runs in its own subprocess, so its peak memory (ru_maxrss) is its own, and each
+Every row records the CPU model, its vector ISA and the cap put on it (`cpu_fields`). The
+time-to-first-result rows (`first_result.py`: process start to the first train step, scoring
+batch and sampling batch, no compilation cache) come first. Every case runs in its own
+subprocess, so its peak memory (ru_maxrss) is its own, and each
 prints one `RESULT {json}` line. Timings: a warm-up call first (its time, compilation
 included, is reported as `compile_and_first_s`; the train step is compiled ahead of time as
 the training loop does, `compile_s`, so there it is the first call alone), then `--runs`
