@@ -3,7 +3,8 @@
 What differs between XLA:CPU and accelerators: which loops are compiled (XLA:CPU runs
 convolution gradients inside loops many times slower), the compiler options of the parameter
 initialisation, the train step and the scorer, how many calls run at once and how many scenes
-are vmapped together, the device mesh, and returning the compiler's freed host memory. Also where a multi-process job starts and which process writes.
+are vmapped together, the device mesh, and returning the compiler's freed host memory. Also
+where a multi-process job starts and which process writes.
 
 Concurrent calls: XLA:CPU runs calls made from different host threads side by side. One call
 at a time leaves a core idle whenever the program runs a small serial operation between its
