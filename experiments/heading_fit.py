@@ -94,7 +94,7 @@ def main() -> None:
         return jnp.asarray(np.concatenate([r[key] for r in rows[split]]))
 
     k = cfg.num_mixtures
-    nb, nh = P.box_params_size(k), P.heading_params_size(k)
+    nh = P.heading_params_size(k)
     heading = {s: cat(s, "heading") for s in rows}
     print(f"vehicles: train {len(heading['train'])}, val {len(heading['val'])}")
     ic, is_ = (cfg.map_channels.index(c) for c in ORIENTATION_CHANNELS)
@@ -104,7 +104,7 @@ def main() -> None:
                                                                              lane[on, 0]))))
     print(f"val vehicles on a lane: {on.mean():.1%}; of those within 20 deg of the lane's "
           f"direction: {(np.abs(off) < np.radians(20)).mean():.1%}")
-    own = {s: nll(cat(s, "out")[:, nb:nb + nh], heading[s]) for s in rows}
+    own = {s: nll(cat(s, "out"), heading[s]) for s in rows}  # the heading mixture
     print(f"{'the model head, as trained':>32}: train {float(own['train']):.3f}, "
           f"val {float(own['val']):.3f}")
     key = jax.random.key(0)

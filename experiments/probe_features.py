@@ -70,11 +70,12 @@ def vehicle_rows(params, cfg, cache, scenes: int = 24, rotate_seed: int | None =
         bins = bin_index(position, cfg)
         feat = f.reshape(b, -1, f.shape[-1])[jnp.arange(b), bins]
         cls = jnp.clip(cls, 0, 2)
-        x = feat
+        x = feat  # the hidden layer of the MLP that outputs the heading
+        mlp = "heading" if cfg.separate_attribute_mlps else "attr"
         for i in range(2):
-            x = jnp.einsum("bi,bio->bo", x, params[f"attr{i}_w"][cls]) + params[f"attr{i}_b"][cls]
+            x = jnp.einsum("bi,bio->bo", x, params[f"{mlp}{i}_w"][cls]) + params[f"{mlp}{i}_b"][cls]
             x = jax.nn.relu(x)
-        out = jnp.einsum("bi,bio->bo", x, params["attr2_w"][cls]) + params["attr2_b"][cls]
+        out = apply(SceneGenNet.attributes, feat, cls)[1]  # the heading mixture's parameters
         mp, mpn = (m.reshape(b, -1, m.shape[-1])[jnp.arange(b), bins] for m in (maps, normed))
         return state, {"features": feat, "hidden": x, "map": mp, "map_normed": mpn, "out": out}
 
@@ -107,16 +108,14 @@ def main() -> None:
     src, cache_dir = sys.argv[1], sys.argv[2]
     cfg, params = load(src, int(sys.argv[3]) if len(sys.argv) > 3 else None)
     rows = vehicle_rows(params, cfg, load_cache(cache_dir))
-    for k, name in (("features", "backbone features"), ("hidden", "attribute hidden layer"),
+    for k, name in (("features", "backbone features"), ("hidden", "heading MLP hidden layer"),
                     ("map", "raw map channels")):
         probe(rows[k], rows["heading"], name)
     print("backbone channel spread:", np.round(rows["features"].std(0), 3))
     print("hidden units never active:", int((rows["hidden"].max(0) <= 0).sum()), "of",
           rows["hidden"].shape[1])
     k = cfg.num_mixtures
-    nb = P.box_params_size(k)
-    heading = rows["out"][:, nb : nb + P.heading_params_size(k)]
-    split = jax.vmap(P.split_heading)(jnp.asarray(heading))
+    split = jax.vmap(P.split_heading)(jnp.asarray(rows["out"]))
     w = np.asarray(jax.nn.softmax(split.logits, -1))
     kappa = np.round(np.asarray(split.log_kappa).mean(0), 2)
     print("heading log kappa (mean per component):", kappa)

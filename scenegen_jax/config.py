@@ -84,6 +84,11 @@ class Config:
         channel per group reduces cos(lane direction) on a straight road to its sign, but a
         sector's mask stays a mask (experiments/results/README.md, session 17). Needs the
         `lanes` layers.
+      separate_attribute_mlps: one three-layer MLP per attribute (box, heading, velocity), as
+        the paper's MLP_box, MLP_theta and MLP_v (the presets). False, the form of checkpoints
+        saved before this field existed, is one MLP whose last layer outputs all three: the
+        heading then shares its hidden units with the box and velocity, and in most runs
+        never learnt (experiments/results/README.md, session 18).
       seed: base random seed.
     """
 
@@ -111,6 +116,7 @@ class Config:
     remat: bool = False
     coord_channels: bool = False
     orientation_bins: int = 0
+    separate_attribute_mlps: bool = False
     seed: int = 0
 
     def __post_init__(self):
@@ -235,7 +241,7 @@ def config_problems(cfg: Config) -> list[str]:
         isinstance(v, int | float) and math.isfinite(v) and v > 0 for v in cfg.ego_size_m
     ):
         out.append(f"ego_size_m: must be two numbers > 0 (width, length), got {cfg.ego_size_m!r}")
-    for name in ("rotate_augment", "remat"):
+    for name in ("rotate_augment", "remat", "coord_channels", "separate_attribute_mlps"):
         if not isinstance(getattr(cfg, name), bool):
             out.append(f"{name}: must be true or false, got {getattr(cfg, name)!r}")
     return out
@@ -255,6 +261,7 @@ PRESETS: dict[str, Config] = {
         batch_size=16,
         learning_rate=1e-4,
         grad_clip=0.0,
+        separate_attribute_mlps=True,
         remat=True,  # accelerator memory; on CPU it costs 1-7 % of a train step (bench/README.md)
     ),
     # Trains on 2 CPU cores: 1.25 m/px over the same 80 m region, half the paper's width.
@@ -272,9 +279,10 @@ PRESETS: dict[str, Config] = {
         hard_negatives=64 * 64,
         batch_size=4,
         learning_rate=1e-3,
+        separate_attribute_mlps=True,
     ),
     # Tests and the demo: minutes on 2 cores. The full softmax over its 1,024 bins, as `cpu`.
-    "tiny": Config(hard_negatives=32 * 32),
+    "tiny": Config(hard_negatives=32 * 32, separate_attribute_mlps=True),
 }
 
 

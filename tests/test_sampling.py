@@ -467,10 +467,10 @@ def real_inputs(val_cache):
     # init_state, as the CLI's checkpoint template uses: its eager op compiles are shared.
     params = jax.tree.map(np.asarray, init_state(TINY).params)
     params["class_mlp2"]["bias"] = np.array([2.0, 0.5, 0.5, -3.0], np.float32)
-    bias = params["attr2_b"].copy()  # [classes, box | heading | velocity]
+    bias = params["box2_b"].copy()  # [classes, box parameters]
     mu = np.log(np.array([[2.0, 4.5], [0.6, 0.6], [0.7, 1.8]]))
     bias[:, K:3 * K] = np.repeat(mu, K, axis=0).reshape(3, K, 2).reshape(3, 2 * K)
-    params["attr2_b"] = bias
+    params["box2_b"] = bias
     crop = jax.jit(crop_map, static_argnums=2)
     maps, egos = [], []
     for i in (0, 4):

@@ -24,6 +24,7 @@ from scenegen_jax.raster.map import ORIENTATION_CHANNELS
 from scenegen_jax.scene import NUM_CLASSES
 
 NUM_ACTOR_CHANNELS = len(ACTOR_CHANNELS)
+ATTRIBUTES = ("box", "heading", "velocity")  # the attribute heads, in output order
 
 
 def attribute_sizes(k: int) -> tuple[int, int, int]:
@@ -86,14 +87,9 @@ def group_norm(x, groups: int, scale, bias, eps: float = 1e-5):
     return centred * (jax.lax.rsqrt(group_mean(jnp.square(centred)) + eps) * scale) + bias
 
 
-def _attribute_bias(k: int):
-    """Initialiser of the last attribute layer's bias [n, out]: box zeros, then the heading
-    and velocity starts of `distributions.params` (near-uniform, evenly spread mixtures)."""
-    from scenegen_jax.distributions import params as P
-
-    row = np.concatenate(
-        [np.zeros(P.box_params_size(k)), P.initial_heading_bias(k), P.initial_velocity_bias(k)]
-    )
+def _bias_init(row):
+    """Initialiser of a last layer's bias [n, len(row)]: `row` for every class."""
+    row = np.asarray(row)
 
     def f(key, shape, dtype=jnp.float32):
         del key
@@ -102,6 +98,24 @@ def _attribute_bias(k: int):
         return jnp.broadcast_to(jnp.asarray(row, dtype), shape)
 
     return f
+
+
+def _attribute_bias_rows(k: int):
+    """Initial biases of the last attribute layers (box, heading, velocity): box zeros, then
+    the heading and velocity starts of `distributions.params` (near-uniform, evenly spread
+    mixtures)."""
+    from scenegen_jax.distributions import params as P
+
+    return np.zeros(P.box_params_size(k)), P.initial_heading_bias(k), P.initial_velocity_bias(k)
+
+
+def _mlp(x, ws, bs, cls):
+    """A per-class MLP on x [B, i]: layer l uses ws[l][cls], bs[l][cls]; ReLU between."""
+    for i, (w, b) in enumerate(zip(ws, bs, strict=True)):
+        x = jnp.einsum("bi,bio->bo", x, w[cls]) + b[cls]
+        if i < len(ws) - 1:
+            x = jax.nn.relu(x)
+    return x
 
 
 def _stacked(init, n: int):
@@ -221,22 +235,36 @@ class SceneGenNet(nn.Module):
         ]
         self.loc_gs = [self.param(f"loc{i}_gn_s", ones, (n, h)) for i in range(2)]
         self.loc_gb = [self.param(f"loc{i}_gn_b", zeros, (n, h)) for i in range(2)]
-        out = sum(attribute_sizes(cfg.num_mixtures))
-        dense_init = nn.initializers.lecun_normal()
-        self.attr_w = [
-            self.param("attr0_w", _stacked(dense_init, n), (n, h, h)),
-            self.param("attr1_w", _stacked(dense_init, n), (n, h, h)),
-            self.param(
-                "attr2_w",
-                _stacked(nn.initializers.variance_scaling(0.1, "fan_in", "normal"), n),
-                (n, h, out),
-            ),
+        sizes = attribute_sizes(cfg.num_mixtures)
+        rows = _attribute_bias_rows(cfg.num_mixtures)
+        if cfg.separate_attribute_mlps:
+            # The paper's MLP_box, MLP_theta and MLP_v: one three-layer MLP per attribute.
+            self.attr_mlps = [
+                self._attribute_mlp(name, size, row)
+                for name, size, row in zip(ATTRIBUTES, sizes, rows, strict=True)
+            ]
+        else:
+            # One MLP whose last layer outputs all three (box | heading | velocity).
+            self.attr_mlps = [self._attribute_mlp("attr", sum(sizes), np.concatenate(rows))]
+
+    def _attribute_mlp(self, name: str, out: int, last_bias):
+        """One per-class three-layer MLP's parameters, ([w0, w1, w2], [b0, b1, b2]), with
+        `out` outputs whose biases start at `last_bias` and weights small."""
+        n, h = NUM_CLASSES, self.cfg.hidden
+        dense = _stacked(nn.initializers.lecun_normal(), n)
+        last = _stacked(nn.initializers.variance_scaling(0.1, "fan_in", "normal"), n)
+        zeros = nn.initializers.zeros
+        ws = [
+            self.param(f"{name}0_w", dense, (n, h, h)),
+            self.param(f"{name}1_w", dense, (n, h, h)),
+            self.param(f"{name}2_w", last, (n, h, out)),
         ]
-        self.attr_b = [
-            self.param("attr0_b", zeros, (n, h)),
-            self.param("attr1_b", zeros, (n, h)),
-            self.param("attr2_b", _attribute_bias(cfg.num_mixtures), (n, out)),
+        bs = [
+            self.param(f"{name}0_b", zeros, (n, h)),
+            self.param(f"{name}1_b", zeros, (n, h)),
+            self.param(f"{name}2_b", _bias_init(last_bias), (n, out)),
         ]
+        return ws, bs
 
     # ------------------------------------------------------------------ recurrence
     def map_gates(self, map_raster):
@@ -371,12 +399,11 @@ class SceneGenNet(nn.Module):
     def attributes(self, feat, cls):
         """Raw (box, heading, velocity) parameters from feature vectors [B, h] for class [B]."""
         cls = jnp.clip(cls, 0, NUM_CLASSES - 1)
-        x = feat
-        for i in range(3):
-            x = jnp.einsum("bi,bio->bo", x, self.attr_w[i][cls]) + self.attr_b[i][cls]
-            if i < 2:
-                x = jax.nn.relu(x)
+        outs = [_mlp(feat, ws, bs, cls) for ws, bs in self.attr_mlps]
+        if len(outs) == len(ATTRIBUTES):
+            return tuple(outs)
         nb, nh, _ = attribute_sizes(self.cfg.num_mixtures)
+        x = outs[0]
         return x[:, :nb], x[:, nb : nb + nh], x[:, nb + nh :]
 
     def __call__(self, map_raster, actor_raster, cls, bins):

@@ -23,6 +23,7 @@ from scenegen_jax.data.union import CacheUnion, load_union
 from scenegen_jax.distributions import TERMS
 from scenegen_jax.likelihood.batch import check_batch, gather_batch, local_rows, to_device
 from scenegen_jax.likelihood.terms import VEHICLE_TERMS
+from scenegen_jax.model.network import ATTRIBUTES
 from scenegen_jax.scene import CLASS_NAMES
 from scenegen_jax.train.data import resolve_weights, union_indices
 from scenegen_jax.train.step import (
@@ -243,6 +244,28 @@ def train(
 # coordinate shares of layer 1's input convolution (a source trained without those inputs).
 # Zero, they leave the source's model as is.
 ZERO_IF_MISSING = ("lstm1_map", "lstm1_coord", "lstm1_orient")
+SHARED_ATTRIBUTE_MLP = "attr"  # its parameters' prefix (`separate_attribute_mlps` false)
+
+
+def split_attribute_mlp(source: dict, params: dict) -> dict:
+    """Flat parameters of per-attribute MLPs (`ATTRIBUTES`, `separate_attribute_mlps`) that
+    compute what the shared MLP in flat `source` computes: each copies its two hidden layers
+    and takes its own columns of the last layer. Only the names `params` has and `source`
+    lacks; empty if `source` has no shared MLP."""
+    if f"{SHARED_ATTRIBUTE_MLP}2_w" not in source:
+        return {}
+    out, start = {}, 0
+    for name in ATTRIBUTES:
+        if f"{name}2_w" not in params or f"{name}2_w" in source:
+            return {}
+        for layer in (0, 1):
+            for kind in ("w", "b"):
+                out[f"{name}{layer}_{kind}"] = source[f"{SHARED_ATTRIBUTE_MLP}{layer}_{kind}"]
+        stop = start + params[f"{name}2_w"].shape[-1]
+        out[f"{name}2_w"] = source[f"{SHARED_ATTRIBUTE_MLP}2_w"][..., start:stop]
+        out[f"{name}2_b"] = source[f"{SHARED_ATTRIBUTE_MLP}2_b"][..., start:stop]
+        start = stop
+    return out
 
 
 def warm_start(params, source, name: str):
@@ -251,19 +274,24 @@ def warm_start(params, source, name: str):
     lane orientation sector and coordinate shares of layer 1's input convolution
     (`ZERO_IF_MISSING`): they start at zero (those inputs then change nothing until training
     moves them), so a model can be extended with map layers, `orientation_bins` or
-    `coord_channels`.
+    `coord_channels`; and per-attribute MLPs, which start as copies of a shared attribute MLP
+    (`split_attribute_mlp`: the same outputs).
 
     Raises:
       ValueError naming `name` and the parameter on a shape mismatch or another missing one.
     """
+    flat = flatten_dict(params, sep="/")
     src = flatten_dict(source, sep="/")
+    src = {**src, **split_attribute_mlp(src, flat)}
     out = {}
-    for path, x in flatten_dict(params, sep="/").items():
+    for path, x in flat.items():
         if path in src:
             if src[path].shape != x.shape:
                 raise ValueError(f"{name}: parameter {path} has shape {src[path].shape}, the "
                                  f"config needs {x.shape}")
-            out[path] = jnp.asarray(src[path], x.dtype)
+            # A copy: split MLPs start from the same source array, and a train step donates
+            # each parameter's buffer (one buffer may not be donated twice).
+            out[path] = jnp.array(src[path], x.dtype, copy=True)
         elif path.split("/")[0] in ZERO_IF_MISSING:
             out[path] = jnp.zeros_like(x)
         else:
