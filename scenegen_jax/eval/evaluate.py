@@ -17,6 +17,7 @@ from scenegen_jax.data.sources import read_frames
 from scenegen_jax.eval import baselines
 from scenegen_jax.eval.mmd import mmd_table
 from scenegen_jax.eval.nll import score_cache, summarize_by_source, summarize_scores
+from scenegen_jax.eval.realism import realism_stats
 from scenegen_jax.raster.transform import scene_from_cached
 from scenegen_jax.sampling.batch import sample_scenes
 
@@ -84,9 +85,10 @@ def sample_baselines(cfg: Config, cache: Cache, indices, train_cache: Cache, see
 
 
 def evaluate(params, cfg: Config, cache: Cache, train_cache: Cache, num_scenes: int, seed: int):
-    """NLL of every cached scene (overall and per source) and MMD rows for every method on
-    `num_scenes` scenes spread evenly over all of them. `cache` may be a
-    `data.union.CacheUnion` of several caches (sources)."""
+    """NLL of every cached scene (overall and per source), and MMD rows and realism figures
+    (`realism.realism_stats`) for every method and the real scenes on `num_scenes` scenes
+    spread evenly over all of them. `cache` may be a `data.union.CacheUnion` of several
+    caches (sources)."""
     scores = score_cache(params, cache, cfg)
     nll = summarize_scores(scores)
     nll_by_source = summarize_by_source(scores, cache)
@@ -96,9 +98,10 @@ def evaluate(params, cfg: Config, cache: Cache, train_cache: Cache, num_scenes: 
     generated["SceneGen"] = sample_scenegen(params, cfg, maps, scenes, seed)
     real = [s.actors for s in scenes]
     mmd = {m: mmd_table(real, generated[m], region_m=cfg.region_m) for m in METHODS}
-    counts = {m: float(np.mean([np.sum(a.valid) for a in generated[m]])) for m in METHODS}
-    counts["real"] = float(np.mean([np.sum(a.valid) for a in real]))
-    return {"nll": nll, "nll_by_source": nll_by_source, "mmd": mmd, "mean_actors": counts,
+    canvases = [np.asarray(cached_scene(cache, int(i), cfg)[0]) for i in indices]
+    realism = {m: realism_stats(canvases, generated[m], cfg) for m in METHODS}
+    realism["real"] = realism_stats(canvases, real, cfg)
+    return {"nll": nll, "nll_by_source": nll_by_source, "mmd": mmd, "realism": realism,
             "conditioning_scenes": len(indices)}
 
 
@@ -111,6 +114,14 @@ def format_table(report: dict) -> str:
         scene_nll = f"{nll['scene_nll']:.1f}" if m == "SceneGen" else "-"
         row = [f"{report['mmd'][m].get(r, float('nan')):.4f}" for r in MMD_ROWS]
         lines.append(" | ".join([m, scene_nll, *row]))
+    lines.append("")
+    lines.append("realism | vehicles on drivable (of within 40 m) | lane-aligned (of on a lane) "
+                 "| overlapping pairs | actors/scene | vehicle / pedestrian / bicyclist")
+    for m, r in report["realism"].items():
+        mix = " / ".join(f"{v:.2f}" for v in r["class_mix"].values())
+        lines.append(f"{m} | {_share(r['on_drivable_share'])} ({r['vehicles_within_40m']}) | "
+                     f"{_share(r['lane_aligned_share'])} ({r['vehicles_on_lane']}) | "
+                     f"{r['overlapping_pairs']} | {r['actors_per_scene']:.1f} | {mix}")
     by_source = report.get("nll_by_source") or {}
     if len(by_source) > 1:
         lines.append("")
@@ -120,3 +131,7 @@ def format_table(report: dict) -> str:
                 f"{name} | {r['scenes']} | {r['scene_nll']:.1f} | {r['nll_per_actor']:.2f}"
             )
     return "\n".join(lines)
+
+
+def _share(x) -> str:
+    return "-" if x is None else f"{x:.1%}"

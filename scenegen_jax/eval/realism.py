@@ -1,4 +1,7 @@
-"""Simple realism statistics of scenes against their maps: drivable-area share, class mix."""
+"""Realism statistics of scenes against their maps, as a user would judge a sample: vehicles
+on the drivable area, vehicles on a lane pointing along it, overlapping boxes, actors per scene
+and the class mix (`realism_stats`; `scenegen evaluate` reports them for the real scenes, the
+SceneGen samples and both baselines on the same maps)."""
 
 from __future__ import annotations
 
@@ -6,8 +9,26 @@ import jax
 import numpy as np
 
 from scenegen_jax.config import Config
-from scenegen_jax.raster.map import ALL_MAP_CHANNELS
-from scenegen_jax.scene import CLASS_NAMES, VEHICLE
+from scenegen_jax.geometry import boxes_overlap
+from scenegen_jax.raster.map import ALL_MAP_CHANNELS, ORIENTATION_CHANNELS
+from scenegen_jax.scene import CLASS_NAMES, PEDESTRIAN, VEHICLE
+
+LANE_TOLERANCE_DEG = 20.0  # a vehicle on a lane is aligned within this of its direction
+
+
+def _vehicle_pixels(canvas: np.ndarray, actors, cfg: Config, radius_m: float):
+    """(rows, cols, slots) of the canvas pixels under the valid vehicles within `radius_m` of
+    the ego, and the number of such vehicles (some may lie beyond the canvas)."""
+    s = canvas.shape[0]
+    half = s * cfg.m_per_px / 2
+    pos = np.asarray(actors.position)
+    sel = np.asarray(actors.valid) & (np.asarray(actors.cls) == VEHICLE)
+    sel &= np.linalg.norm(pos, axis=1) < radius_m
+    slots = np.flatnonzero(sel)
+    col = np.floor((pos[slots, 0] + half) / cfg.m_per_px).astype(int)
+    row = np.floor((half - pos[slots, 1]) / cfg.m_per_px).astype(int)
+    ok = (row >= 0) & (row < s) & (col >= 0) & (col < s)
+    return row[ok], col[ok], slots[ok], len(slots)
 
 
 def drivable_share(canvas: np.ndarray, actors, cfg: Config, radius_m: float = 40.0):
@@ -20,15 +41,61 @@ def drivable_share(canvas: np.ndarray, actors, cfg: Config, radius_m: float = 40
       radius_m: only vehicles within this distance of the ego count.
     """
     drivable = np.asarray(canvas[..., ALL_MAP_CHANNELS.index("drivable_area")], np.float32)
-    s = drivable.shape[0]
-    half = s * cfg.m_per_px / 2
-    pos = np.asarray(actors.position)
-    sel = np.asarray(actors.valid) & (np.asarray(actors.cls) == VEHICLE)
-    sel &= np.linalg.norm(pos, axis=1) < radius_m
-    col = np.floor((pos[sel, 0] + half) / cfg.m_per_px).astype(int)
-    row = np.floor((half - pos[sel, 1]) / cfg.m_per_px).astype(int)
-    ok = (row >= 0) & (row < s) & (col >= 0) & (col < s)
-    return int((drivable[row[ok], col[ok]] > 0.5).sum()), int(sel.sum())
+    row, col, _, total = _vehicle_pixels(canvas, actors, cfg, radius_m)
+    return int((drivable[row, col] > 0.5).sum()), total
+
+
+def lane_alignment(canvas: np.ndarray, actors, cfg: Config, radius_m: float = 40.0,
+                   tolerance_deg: float = LANE_TOLERANCE_DEG):
+    """(vehicles on a lane whose heading is within `tolerance_deg` of the lane's direction,
+    vehicles on a lane) for one unrotated scene; arguments as `drivable_share`. A vehicle is
+    on a lane where the lane orientation channels at its centre's pixel have length > 0.5
+    (they hold the lane's (cos, sin) direction in the ego frame, zero off every lane)."""
+    ic, is_ = (ALL_MAP_CHANNELS.index(c) for c in ORIENTATION_CHANNELS)
+    row, col, slots, _ = _vehicle_pixels(canvas, actors, cfg, radius_m)
+    cos, sin = (np.asarray(canvas[row, col, i], np.float64) for i in (ic, is_))
+    on = np.hypot(cos, sin) > 0.5
+    heading = np.asarray(actors.heading, np.float64)[slots[on]]
+    off = np.angle(np.exp(1j * (heading - np.arctan2(sin[on], cos[on]))))
+    return int((np.abs(off) <= np.radians(tolerance_deg)).sum()), int(on.sum())
+
+
+def overlapping_pairs(actors) -> int:
+    """Pairs of valid vehicle and bicyclist boxes of one scene that overlap with positive area
+    (pedestrians are points, as in the sampler's collision rejection)."""
+    a = jax.tree.map(np.asarray, actors)
+    boxed = np.flatnonzero(a.valid & (a.cls != PEDESTRIAN))
+    pos, size = a.position.astype(np.float64), a.size.astype(np.float64)
+    head = a.heading.astype(np.float64)
+    return int(sum(
+        boxes_overlap(pos[i], size[i], head[i], pos[boxed[k + 1:]], size[boxed[k + 1:]],
+                      head[boxed[k + 1:]]).sum()
+        for k, i in enumerate(boxed)
+    ))
+
+
+def realism_stats(canvases, actors_list, cfg: Config) -> dict:
+    """Realism figures of a set of scenes (numpy Actors each) on their unrotated map canvases:
+    vehicles within 40 m of the ego and the share of them on the drivable area; vehicles on a
+    lane and the share of them aligned with it; overlapping box pairs (total and scenes with
+    any); actors per scene; the class mix."""
+    on = total = aligned = on_lane = 0
+    overlaps = []
+    for canvas, actors in zip(canvases, actors_list, strict=True):
+        a, b = drivable_share(canvas, actors, cfg)
+        c, d = lane_alignment(canvas, actors, cfg)
+        on, total, aligned, on_lane = on + a, total + b, aligned + c, on_lane + d
+        overlaps.append(overlapping_pairs(actors))
+    return {
+        "vehicles_within_40m": total,
+        "on_drivable_share": on / total if total else None,
+        "vehicles_on_lane": on_lane,
+        "lane_aligned_share": aligned / on_lane if on_lane else None,
+        "overlapping_pairs": int(sum(overlaps)),
+        "scenes_with_overlap": int(np.count_nonzero(overlaps)),
+        "actors_per_scene": float(np.mean([np.sum(a.valid) for a in actors_list])),
+        "class_mix": class_mix(actors_list),
+    }
 
 
 def class_mix(actors_list) -> dict[str, float]:
