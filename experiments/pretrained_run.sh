@@ -3,11 +3,15 @@
 # JSON and ScenarioNet), `cpu` config. Prepares the caches if they are missing, then starts
 # or resumes the run in experiments/pretrained_run/ (committed: config.json, data.json,
 # metrics.jsonl and the newest checkpoint only), pinned to one core so the other stays free.
-# The `cpu` preset (separate attribute MLPs since session 18) with pixel coordinates and a
-# 50-step warm-up. Session 18 started it from the earlier run's step 1650 (one shared
-# attribute MLP, no coordinates; its metrics: experiments/results/pretrained_run_shared_metrics.jsonl):
-#   INIT_FROM=DIR experiments/pretrained_run.sh   (DIR: that run's workdir; only used
-#   when experiments/pretrained_run has no checkpoint yet)
+# The `cpu` preset (separate attribute MLPs since session 18) with pixel coordinates, the
+# canonical order's channel, the map at the actor's bin as an attribute input, and a 50-step
+# warm-up. It is the fourth phase of the model's training (MODEL_CARD.md): session 19 started
+# it from the third phase's step 350 (runs/order_ft: the same without attribute_map_input;
+# metrics experiments/results/pretrained_run_order_metrics.jsonl), itself started from the
+# second (pretrained_run_split_metrics.jsonl), started from the first
+# (pretrained_run_shared_metrics.jsonl). A new phase starts with:
+#   INIT_FROM=DIR experiments/pretrained_run.sh   (DIR: the previous phase's workdir; only
+#   used when experiments/pretrained_run has no checkpoint yet)
 # Usage: experiments/pretrained_run.sh [STEPS] [CORE] [MINUTES]
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -24,7 +28,8 @@ prep av2 "$SHARED/av2_sensor_mini" train runs/cache_cpu_av2_train --stride 1
 prep womd_json "$SHARED/womd_mini/gpudrive_json" train runs/cache_cpu_womdjson_train
 prep scenarionet "$SHARED/womd_mini/scenarionet" train runs/cache_cpu_womdpkl_train
 XLA_FLAGS=--xla_cpu_multi_thread_eigen=false taskset -c "$CORE" $BIN/scenegen train \
-    --config cpu --set coord_channels=true warmup_steps=50 ${INIT_FROM:+--init-from "$INIT_FROM"} \
+    --config cpu --set coord_channels=true order_channel=true attribute_map_input=true \
+    warmup_steps=50 ${INIT_FROM:+--init-from "$INIT_FROM"} \
     --workdir experiments/pretrained_run --steps "$STEPS" --save-every 50 \
     --keep 1 --log-every 10 ${MINUTES:+--minutes "$MINUTES"} \
     --data "$PWD/runs/cache_cpu_av2_train" "$PWD/runs/cache_cpu_womdjson_train" \

@@ -63,27 +63,32 @@ def vehicle_rows(params, cfg, cache, scenes: int = 24, rotate_seed: int | None =
     map_gates = apply(SceneGenNet.map_gates, maps)  # every map input option of the config
 
     @jax.jit
-    def step(state, raster, cls, position):
-        state, h2 = apply(SceneGenNet.recur, state, map_gates + apply(SceneGenNet.actor_gates,
-                                                                      raster))
+    def step(state, raster, prev_bin, cls, position):
+        gates = map_gates + apply(SceneGenNet.actor_gates, raster)
+        state, h2 = apply(SceneGenNet.recur, state,
+                          gates + apply(SceneGenNet.order_gates, prev_bin))
         f = apply(SceneGenNet.features, h2)
         bins = bin_index(position, cfg)
         feat = f.reshape(b, -1, f.shape[-1])[jnp.arange(b), bins]
-        cls = jnp.clip(cls, 0, 2)
-        x = feat  # the hidden layer of the MLP that outputs the heading
-        mlp = "heading" if cfg.separate_attribute_mlps else "attr"
-        for i in range(2):
-            x = jnp.einsum("bi,bio->bo", x, params[f"{mlp}{i}_w"][cls]) + params[f"{mlp}{i}_b"][cls]
-            x = jax.nn.relu(x)
-        out = apply(SceneGenNet.attributes, feat, cls)[1]  # the heading mixture's parameters
         mp, mpn = (m.reshape(b, -1, m.shape[-1])[jnp.arange(b), bins] for m in (maps, normed))
+        cls = jnp.clip(cls, 0, 2)
+        mlp = "heading" if cfg.separate_attribute_mlps else "attr"
+        x, w0 = feat, params[f"{mlp}0_w"][cls]  # the hidden layer of the heading's MLP
+        if cfg.attribute_map_input:
+            x, w0 = jnp.concatenate([feat, mp], -1), jnp.concatenate(
+                [w0, params[f"{mlp}0_map_w"][cls]], axis=1)
+        for i, w in enumerate((w0, params[f"{mlp}1_w"][cls])):
+            x = jax.nn.relu(jnp.einsum("bi,bio->bo", x, w) + params[f"{mlp}{i}_b"][cls])
+        out = apply(SceneGenNet.attributes, feat, cls, mp)[1]  # the heading mixture's parameters
         return state, {"features": feat, "hidden": x, "map": mp, "map_normed": mpn, "out": out}
 
     rows: dict[str, list] = {k: [] for k in ("features", "hidden", "map", "map_normed", "out",
                                                  "heading")}
+    prev_bin = jnp.zeros((b,), jnp.int32)
     for t in range(int(jnp.max(jnp.sum(scene.actors.valid, axis=1)))):
         a = jax.tree.map(lambda x, t=t: x[:, t], scene.actors)
-        state, got = step(state, raster, a.cls, a.position)
+        state, got = step(state, raster, prev_bin, a.cls, a.position)
+        prev_bin = bin_index(a.position, cfg)
         m = np.asarray(a.valid & (a.cls == VEHICLE))
         for k, v in got.items():
             rows[k].append(np.asarray(v)[m])

@@ -84,6 +84,18 @@ class Config:
         channel per group reduces cos(lane direction) on a straight road to its sign, but a
         sector's mask stays a mask (experiments/results/README.md, session 17). Needs the
         `lanes` layers.
+      order_channel: one more input channel, 1 on the bins the canonical order still allows
+        for the next actor (at or after the previous actor's bin, every bin at the first
+        step) and 0 before (beyond the paper's input). It is what sampling's ordering mask
+        removes, which the fully convolutional network cannot otherwise see: without it the
+        unmasked distribution it learns and the masked one it is sampled from differ, and the
+        class head cannot tell how much room the order leaves (experiments/results/README.md,
+        session 19).
+      attribute_map_input: the attribute MLPs also take the map channels at the actor's bin
+        (beyond the paper, whose MLPs see the backbone's feature vector only). The raw map
+        at the bin holds the lane direction that the heading needs; the 16-channel backbone
+        passes on only part of it (experiments/results/README.md, sessions 18-19). Needs map
+        layers and `separate_attribute_mlps`.
       separate_attribute_mlps: one three-layer MLP per attribute (box, heading, velocity), as
         the paper's MLP_box, MLP_theta and MLP_v (the presets). False, the form of checkpoints
         saved before this field existed, is one MLP whose last layer outputs all three: the
@@ -116,6 +128,8 @@ class Config:
     remat: bool = False
     coord_channels: bool = False
     orientation_bins: int = 0
+    order_channel: bool = False
+    attribute_map_input: bool = False
     separate_attribute_mlps: bool = False
     seed: int = 0
 
@@ -224,6 +238,10 @@ def config_problems(cfg: Config) -> list[str]:
     elif bins and "lanes" not in cfg.map_layers:
         out.append("orientation_bins: needs the 'lanes' map layers (the lane orientation), "
                    f"got map_layers {cfg.map_layers!r}")
+    if cfg.attribute_map_input is True and not (cfg.map_layers and cfg.separate_attribute_mlps):
+        out.append("attribute_map_input: needs map layers and separate_attribute_mlps, got "
+                   f"map_layers {cfg.map_layers!r}, "
+                   f"separate_attribute_mlps {cfg.separate_attribute_mlps!r}")
     for name in ("m_per_px", "learning_rate", "pedestrian_size_m"):
         v = getattr(cfg, name)
         if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
@@ -241,7 +259,8 @@ def config_problems(cfg: Config) -> list[str]:
         isinstance(v, int | float) and math.isfinite(v) and v > 0 for v in cfg.ego_size_m
     ):
         out.append(f"ego_size_m: must be two numbers > 0 (width, length), got {cfg.ego_size_m!r}")
-    for name in ("rotate_augment", "remat", "coord_channels", "separate_attribute_mlps"):
+    for name in ("rotate_augment", "remat", "coord_channels", "order_channel",
+                 "attribute_map_input", "separate_attribute_mlps"):
         if not isinstance(getattr(cfg, name), bool):
             out.append(f"{name}: must be true or false, got {getattr(cfg, name)!r}")
     return out

@@ -15,41 +15,63 @@ from scenegen_jax.raster.actors import draw_actor
 from scenegen_jax.scene import STOP, Scene, bin_index
 
 
-def reference_step_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | None):
-    """The same terms computed the obvious way: a Python loop over steps, each step a full
-    ConvLSTM step on the concatenated input (map ++ actors ++ h1)."""
+def _reference_steps(params, cfg: Config, maps, scene: Scene, steps: int):
+    """The obvious per-step loop: each step a full ConvLSTM step on the concatenated input
+    (map ++ actors ++ h1 ++ the canonical order's channel), teacher forced with the scene's
+    actors. Yields (t, backbone features [B, H, W, h], the actors padded to `steps` slots)."""
     net = SceneGenNet(cfg)
-
     apply = _bound(net, params)
     b = maps.shape[0]
     w_in = jnp.concatenate(
         ([params["lstm1_map"]] if cfg.map_channels else [])
-        + [params["lstm1_act"], params["lstm1_rec"]],
+        + [params["lstm1_act"], params["lstm1_rec"]]
+        + ([params["lstm1_order"]] if cfg.order_channel else []),
         axis=2,
     )
-    n_actors = jnp.sum(scene.actors.valid, axis=1)
-    steps = int(jnp.max(n_actors)) + 1
     actors = _pad_slots(scene.actors, max(steps, scene.actors.cls.shape[1]))
     raster = jax.vmap(functools.partial(draw_actor, cfg=cfg))(
         jnp.zeros((b, cfg.grid_size, cfg.grid_size, 9)), scene.ego, jnp.ones((b,), bool)
     )
     state = apply(SceneGenNet.initial_state, b)
-    out = {k: [] for k in TERMS}
     for t in range(steps):
         (h1, c1), (h2, c2) = state
-        x = jnp.concatenate([maps, raster, h1], axis=-1)
+        # The order channel: 1 on the bins at or after the previous actor's (all at t = 0).
+        prev = bin_index(actors.position[:, t - 1], cfg) if t else jnp.zeros((b,), jnp.int32)
+        allowed = jnp.arange(cfg.grid_size**2)[None] >= prev[:, None]
+        order = allowed.reshape(b, cfg.grid_size, cfg.grid_size, 1).astype(maps.dtype)
+        x = jnp.concatenate([maps, raster, h1] + ([order] if cfg.order_channel else []), axis=-1)
         h1, c1 = lstm_gates(conv(x, w_in, params["lstm1_b"]), c1)
         h2, c2 = lstm_gates(
             conv(jnp.concatenate([h1, h2], -1), params["lstm2_w"], params["lstm2_b"]), c2
         )
         state = ((h1, c1), (h2, c2))
-        f = apply(SceneGenNet.features, h2)
+        yield t, apply(SceneGenNet.features, h2), actors
+        a = jax.tree.map(lambda x, t=t: x[:, t], actors)
+        raster = jax.vmap(functools.partial(draw_actor, cfg=cfg))(raster, a, jnp.zeros((b,), bool))
+
+
+def reference_step_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | None):
+    """The teacher-forced terms of every step, step by step (`_reference_steps`)."""
+    net = SceneGenNet(cfg)
+    n_actors = jnp.sum(scene.actors.valid, axis=1)
+    out = {k: [] for k in TERMS}
+    for t, f, actors in _reference_steps(params, cfg, maps, scene, int(jnp.max(n_actors)) + 1):
         a = jax.tree.map(lambda x, t=t: x[:, t], actors)
         is_stop = n_actors == t
         target = a.replace(cls=jnp.where(is_stop, STOP, a.cls))
-        heads = step_heads(net, params, f, target.cls, bin_index(target.position, cfg))
-        terms = head_terms(net, params, heads, target, is_stop, cfg, hard_negatives)
+        bins = bin_index(target.position, cfg)
+        heads = step_heads(net, params, f, target.cls, bins)
+        map_feat = maps.reshape(maps.shape[0], -1, maps.shape[-1])[jnp.arange(maps.shape[0]), bins]
+        terms = head_terms(net, params, heads, target, is_stop, cfg, hard_negatives, map_feat)
         for k in TERMS:
             out[k].append(terms[k] * (t <= n_actors))
-        raster = jax.vmap(functools.partial(draw_actor, cfg=cfg))(raster, a, jnp.zeros((b,), bool))
     return {k: jnp.stack(v, axis=1) for k, v in out.items()}
+
+
+def reference_location_logits(params, cfg: Config, maps, scene: Scene, step: int, cls):
+    """Location logits [B, H*W] of class `cls` [B] at `step`, after the scene's first `step`
+    actors (teacher forced, `_reference_steps`)."""
+    net = SceneGenNet(cfg)
+    for t, f, _ in _reference_steps(params, cfg, maps, scene, step + 1):
+        if t == step:
+            return net.apply({"params": params}, f, cls, method=SceneGenNet.location_logits)

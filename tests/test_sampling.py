@@ -238,6 +238,9 @@ class FakeModel:
     def next_actor_gates(self, params, gates, before, after, position):
         return gates
 
+    def order_gates(self, params, prev_bin):
+        return jnp.zeros((1, 1, 1, 1))
+
     def recur(self, params, state, gates):
         state = self.initial_state(params) if state is None else state
         return state + 1, jnp.full((1, 1, 1, 1), state, jnp.float32)
@@ -254,7 +257,7 @@ class FakeModel:
     def location_logits(self, params, f, cls):
         return params["loc"][self._t(f)][None]
 
-    def attributes(self, params, feat, cls):
+    def attributes(self, params, feat, cls, map_feat):
         r = feat.shape[0]
         return tuple(jnp.broadcast_to(params[k], (r, params[k].shape[0]))
                      for k in ("box", "heading", "velocity"))
@@ -327,6 +330,32 @@ def run_fake(params, given=None, caps=None, seed=0):
 
 def bins_of(actors: Actors, cfg=FAKE_CFG):
     return np.asarray(bin_index(jnp.asarray(actors.position), cfg))
+
+
+def test_candidates_take_the_map_channels_at_their_own_bins(monkeypatch):
+    """The attribute MLPs' map input (`attribute_map_input`) is the map raster at each
+    candidate's own bin: a model that echoes it into the box parameters, and a best-of-M
+    draw that returns them as the size, give every candidate its bin's map values."""
+    import scenegen_jax.sampling.rollout as rollout
+
+    class MapEcho(FakeModel):
+        def attributes(self, params, feat, cls, map_feat):
+            return map_feat, map_feat[:, :1], map_feat[:, :2]
+
+    def echo(keys, box, heading, velocity, classes, cfg, proposals):
+        return box[:, :2], heading[:, 0], velocity
+
+    monkeypatch.setattr(rollout, "sample_attributes", echo)
+    n, cm = FAKE_CFG.grid_size, len(FAKE_CFG.map_channels)
+    map_raster = jnp.arange(n * n * cm, dtype=jnp.float32).reshape(1, n, n, cm)
+    f = jnp.zeros((1, n, n, 1))
+    bins, cands = rollout._candidates(jax.random.key(0), {}, MapEcho(FAKE_CFG), f, map_raster,
+                                      VEHICLE, jnp.zeros((n * n,)), FAKE_CFG, 1, 16)
+    bins = np.asarray(bins)
+    assert len(set(bins.tolist())) > 8
+    want = np.arange(n * n * cm, dtype=np.float32).reshape(n * n, cm)[bins]
+    np.testing.assert_array_equal(cands.size, want[:, :2])
+    np.testing.assert_array_equal(cands.heading, want[:, 0])
 
 
 def test_fake_model_insertion_order_classes_and_stop():
@@ -606,6 +635,42 @@ def test_real_network_given_actors_and_batch_equals_single_calls(real_inputs, va
                 np.testing.assert_allclose(getattr(one.actors, field),
                                            getattr(want.actors, field), rtol=1e-5, atol=1e-4)
             assert int(one.stop_reason) == int(want.stop_reason)
+
+
+def test_real_network_order_channel_is_the_one_training_sees(real_inputs):
+    """With `order_channel` the sampler gives the network the canonical order's channel of
+    the previous actor's bin, as the teacher-forced unroll does: the distribution each step's
+    location is drawn from is the plain reference's location softmax after the same actors,
+    renormalised over the bins the order allows."""
+    from reference_unroll import reference_location_logits
+
+    _, maps, egos = real_inputs
+    cfg = TINY.replace(order_channel=True, attribute_map_input=True)
+    params = jax.tree.map(np.asarray, init_state(cfg).params)
+    params["class_mlp2"]["bias"] = np.array([3.0, 0.0, 0.0, -3.0], np.float32)  # rarely stop
+    w = params["loc2_w"]  # zero at initialisation: flat logits
+    params["loc2_w"] = np.random.default_rng(0).normal(size=w.shape).astype(w.dtype) / 2.0
+    steps = (0, 1, 2, 3)
+    out = jax.tree.map(np.asarray, sample_scenes(
+        jax.random.key(4), params, cfg, maps[:1], jax.tree.map(lambda x: x[:1], egos),
+        num_per_map=1, options=SamplerOptions(heatmap_steps=steps)))
+    actors = jax.tree.map(lambda x: jnp.asarray(x[0]), out.actors)  # [1, N]
+    ego = jax.tree.map(lambda x: jnp.asarray(x[:1]), egos)
+    assert int(actors.valid.sum()) > steps[-1]
+    bins = np.asarray(bin_index(actors.position[0], cfg))
+    no_order = {**params, "lstm1_order": np.zeros_like(params["lstm1_order"])}
+    for k in steps:
+        first_k = actors.replace(valid=actors.valid & (jnp.arange(cfg.max_actors) < k))
+        scene = Scene(actors=first_k, ego=ego)
+        cls = jnp.asarray(out.heatmap_cls[0, 0, k])[None]
+        allowed = jnp.arange(cfg.grid_size**2) >= (bins[k - 1] if k else 0)
+        want = []
+        for p in (params, no_order):
+            logits = reference_location_logits(p, cfg, jnp.asarray(maps[:1]), scene, k, cls)[0]
+            want.append(np.asarray(jax.nn.softmax(jnp.where(allowed, logits, -jnp.inf))))
+        np.testing.assert_allclose(out.heatmaps[0, 0, k], want[0], rtol=1e-4, atol=1e-6)
+        if k:  # the channel matters once an actor has been placed
+            assert np.abs(want[0] - want[1]).max() > 1e-3
 
 
 # ----------------------------------------------------------------------------- CLI

@@ -230,6 +230,46 @@ def test_coordinate_channels_tell_rows_apart_and_start_at_zero_from_a_warm_start
     np.testing.assert_array_equal(got, want)
 
 
+def test_order_channel_and_attribute_map_input_start_at_zero_from_a_warm_start():
+    """`order_channel`'s gates are the convolution of a mask that is 1 from the previous
+    actor's bin on (hand-built here, checked against `lax.conv`), every bin at a scene's first
+    step. Extended from a model without them, the order channel's and the attribute MLPs' map
+    weights (`attribute_map_input`) start at zero and change nothing."""
+    from scenegen_jax.train.loop import warm_start
+
+    order = CFG.replace(order_channel=True, attribute_map_input=True)
+    net = SceneGenNet(order)
+    params = init_state(order, seed=2).params
+    n = CFG.grid_size
+    prev = jnp.array([0, 5 * n + 7])  # first step; after an actor in row 5, column 7
+    gates = net.apply({"params": params}, prev, method=SceneGenNet.order_gates)
+    mask = np.ones((2, n, n, 1), np.float32)
+    mask[1, :5] = 0.0
+    mask[1, 5, :7] = 0.0
+    want = jax.lax.conv_general_dilated(jnp.asarray(mask), params["lstm1_order"], (1, 1), "SAME",
+                                        dimension_numbers=("NHWC", "HWIO", "NHWC"))
+    np.testing.assert_allclose(gates, want, rtol=1e-5, atol=1e-5)
+    assert float(jnp.abs(gates[0] - gates[1]).max()) > 1e-3
+
+    source = init_state(CFG, seed=1).params
+    extended = warm_start(params, source, "src")
+    assert not np.any(np.asarray(extended["lstm1_order"]))
+    assert not np.any(np.asarray(net.apply({"params": extended}, prev,
+                                           method=SceneGenNet.order_gates)))
+    feat = jax.random.normal(jax.random.key(3), (5, CFG.hidden))
+    map_feat = jax.random.uniform(jax.random.key(4), (5, len(CFG.map_channels)))
+    cls = jnp.array([0, 1, 2, 0, 1])
+    with_map = net.apply({"params": params}, feat, cls, map_feat, method=SceneGenNet.attributes)
+    got = net.apply({"params": extended}, feat, cls, map_feat, method=SceneGenNet.attributes)
+    want = SceneGenNet(CFG).apply({"params": source}, feat, cls, method=SceneGenNet.attributes)
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_allclose(g, w, rtol=1e-6, atol=1e-6)
+    # With its own (non-zero) map weights every attribute depends on the map at the bin.
+    no_map = net.apply({"params": params}, feat, cls, 0 * map_feat, method=SceneGenNet.attributes)
+    for m, z in zip(with_map, no_map, strict=True):
+        assert float(jnp.abs(m - z).max()) > 1e-4
+
+
 def test_separate_attribute_mlps_keep_each_attribute_to_its_own_weights_and_warm_start_exactly():
     """With `separate_attribute_mlps` (the paper's MLP_box, MLP_theta, MLP_v) the heading
     parameters depend on the heading MLP only: no gradient reaches the box or velocity MLPs'

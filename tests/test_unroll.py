@@ -33,7 +33,10 @@ def _batch(cache, idx):
 def reference_case(tiny_train_cache, small_scenes):
     """Inputs of the fast-against-reference tests, and the reference's terms (full
     normaliser) and gradient (64 hard negatives), computed once for every variant."""
-    cfg = CFG.replace(bptt_window=16)  # one window: the reference has no truncation either
+    # One window: the reference has no truncation either. With the canonical order's input
+    # channel (`order_channel`), whose gates are the one input that changes at every step,
+    # and the map at each actor's bin as an input of the attribute MLPs.
+    cfg = CFG.replace(bptt_window=16, order_channel=True, attribute_map_input=True)
     params = random_params(cfg, jax.random.key(1))
     maps, scene = crop_batch(_batch(tiny_train_cache, small_scenes), jnp.array([0.0, 1.0]), cfg)
     ref = reference_step_terms(params, cfg, maps, scene, None)

@@ -18,7 +18,8 @@ elsewhere `_scanned_steps`, the same mathematics as a loop over the steps):
   * the map share of layer 1's input convolution is computed once per scene (`map_gates`),
     so its weight gradient is one convolution over the gradients summed over steps;
   * per step: the actor share of layer 1's input gates, updated by a convolution over the
-    new actor's drawing window only (`SceneGenNet.next_actor_gates`), and the recurrence;
+    new actor's drawing window only (`SceneGenNet.next_actor_gates`), the canonical order's
+    share with `order_channel` (`SceneGenNet.order_gates`), and the recurrence;
   * the backbone and the conv heads run on chunks of consecutive steps whose activations fit
     in cache (`head_chunk`; one step at the paper's width and grid): batching a whole window
     made XLA:CPU's convolutions 2-4x slower once the batch left the cache;
@@ -44,7 +45,7 @@ import jax.numpy as jnp
 from scenegen_jax import backend
 from scenegen_jax.config import Config
 from scenegen_jax.distributions import HeadOutputs, actor_log_likelihood
-from scenegen_jax.model.network import SceneGenNet
+from scenegen_jax.model.network import SceneGenNet, map_at_bins
 from scenegen_jax.raster.actors import draw_actor, empty_actor_raster
 from scenegen_jax.scene import STOP, Actors, Scene, bin_index
 
@@ -130,11 +131,12 @@ def step_heads(net: SceneGenNet, params, f, cls, bins):
 
 
 def head_terms(net: SceneGenNet, params, heads, targets: Actors, is_stop, cfg: Config,
-               hard_negatives):
-    """Per-term log-likelihoods of targets [M] from `step_heads` outputs (any leading M)."""
+               hard_negatives, map_feat):
+    """Per-term log-likelihoods of targets [M] from `step_heads` outputs (any leading M) and
+    the map channels at the targets' bins, map_feat [M, Cm] (`attribute_map_input`)."""
     class_logits, location_logits, feat = heads
     box, heading, velocity = net.apply(
-        {"params": params}, feat, targets.cls, method=SceneGenNet.attributes
+        {"params": params}, feat, targets.cls, map_feat, method=SceneGenNet.attributes
     )
     head = HeadOutputs(
         class_logits=class_logits,
@@ -163,15 +165,19 @@ def scan_windows(body, init, windows: int):
 
 class _Scenes(NamedTuple):
     """What every window of a batch of scenes reads: actors padded to whole windows [B, T],
-    actor counts [B], the ego-only raster [B, H, W, 9] and the zero ConvLSTM state."""
+    actor counts [B], each step's previous actor's bin [B, T] (0 at the first step; the
+    `order_channel` input), the map channels at each actor's bin [B, T, Cm] (the
+    `attribute_map_input`), the ego-only raster [B, H, W, 9] and the zero ConvLSTM state."""
 
     actors: Actors
     n_actors: jnp.ndarray
+    prev_bins: jnp.ndarray
+    map_feat: jnp.ndarray
     raster0: jnp.ndarray
     state0: Any
 
 
-def _scenes(params, cfg: Config, scene: Scene) -> _Scenes:
+def _scenes(params, cfg: Config, maps, scene: Scene) -> _Scenes:
     net = SceneGenNet(cfg)
     b = scene.ego.cls.shape[0]
     raster0 = _draw(cfg)(
@@ -179,9 +185,13 @@ def _scenes(params, cfg: Config, scene: Scene) -> _Scenes:
         scene.ego,
         jnp.ones((b,), bool),
     )
+    actors = _pad_slots(scene.actors, num_windows(cfg) * cfg.bptt_window)
+    bins = bin_index(actors.position, cfg)
     return _Scenes(
-        actors=_pad_slots(scene.actors, num_windows(cfg) * cfg.bptt_window),
+        actors=actors,
         n_actors=jnp.sum(scene.actors.valid, axis=1),
+        prev_bins=jnp.concatenate([jnp.zeros_like(bins[:, :1]), bins[:, :-1]], axis=1),
+        map_feat=map_at_bins(maps, bins),
         raster0=raster0,
         state0=net.apply({"params": params}, b, method=SceneGenNet.initial_state),
     )
@@ -201,17 +211,20 @@ def window_terms(params, map_gates, carry, start, scenes: _Scenes, cfg: Config,
         state = None
     b, w = map_gates.shape[0], cfg.bptt_window
     win = jax.tree.map(lambda x: jax.lax.dynamic_slice_in_dim(x, start, w, axis=1), scenes.actors)
+    prev_bins = jax.lax.dynamic_slice_in_dim(scenes.prev_bins, start, w, axis=1)
+    map_feat = jax.lax.dynamic_slice_in_dim(scenes.map_feat, start, w, axis=1)
     targets, is_stop, valid = _step_targets(win, scenes.n_actors, start + jnp.arange(w))
     bins = bin_index(targets.position, cfg)  # [B, W]
     steps = _scanned_steps if backend.compiled_step_loop() else _unrolled_steps
     heads, state, raster_end = steps(
-        net, params, map_gates, state, raster, win, targets.cls, bins, cfg
+        net, params, map_gates, state, raster, win, targets.cls, bins, prev_bins, cfg
     )
     # The densities are cheap and small: one batched call over the window's steps.
-    flat = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1).reshape(w * b, *x.shape[2:]), targets)
-    terms = head_terms(
-        net, params, heads, flat, jnp.swapaxes(is_stop, 0, 1).reshape(-1), cfg, hard_negatives
-    )
+    def step_major(x):  # [B, W, ...] -> [W * B, ...]
+        return jnp.swapaxes(x, 0, 1).reshape(w * b, *x.shape[2:])
+
+    terms = head_terms(net, params, heads, jax.tree.map(step_major, targets),
+                       step_major(is_stop), cfg, hard_negatives, step_major(map_feat))
     terms = {k: jnp.swapaxes(v.reshape(w, b), 0, 1) * valid for k, v in terms.items()}
     return (state, raster_end), terms
 
@@ -228,7 +241,8 @@ def _draw(cfg: Config):
     return jax.vmap(functools.partial(draw_actor, cfg=cfg))
 
 
-def _unrolled_steps(net, params, map_gates, state, raster, win: Actors, cls, bins, cfg):
+def _unrolled_steps(net, params, map_gates, state, raster, win: Actors, cls, bins, prev_bins,
+                    cfg):
     """The window's steps unrolled at trace time, backbone and heads on chunks of steps
     (`head_chunk`), with `cfg.remat` each chunk recomputed in the backward pass one chunk
     late. Returns (heads [W * B, ...] step-major, state, raster after the window)."""
@@ -256,7 +270,8 @@ def _unrolled_steps(net, params, map_gates, state, raster, win: Actors, cls, bin
                     SceneGenNet.next_actor_gates,
                     actor_gates, rasters[j - 1], rasters[j], win.position[:, j - 1],
                 )
-            state, h2 = apply(SceneGenNet.recur, state, actor_gates + map_gates)
+            order = apply(SceneGenNet.order_gates, prev_bins[:, j])
+            state, h2 = apply(SceneGenNet.recur, state, actor_gates + map_gates + order)
             h2s.append(h2)
         at_cls = jnp.swapaxes(cls[:, c0 : c0 + chunk], 0, 1).reshape(-1)
         at = jnp.swapaxes(bins[:, c0 : c0 + chunk], 0, 1).reshape(-1)
@@ -277,7 +292,8 @@ def _unrolled_steps(net, params, map_gates, state, raster, win: Actors, cls, bin
     return heads, state, raster_end
 
 
-def _scanned_steps(net, params, map_gates, state, raster, win: Actors, cls, bins, cfg):
+def _scanned_steps(net, params, map_gates, state, raster, win: Actors, cls, bins, prev_bins,
+                   cfg):
     """`_unrolled_steps` as a `lax.scan` over the window's steps 1..W-1 (step 0, which may
     start from the zero state, runs before it): `backend.STEP_LOOP_UNROLL` steps are compiled,
     whatever the window.
@@ -292,21 +308,25 @@ def _scanned_steps(net, params, map_gates, state, raster, win: Actors, cls, bins
     b = map_gates.shape[0]
     draw = _draw(cfg)
     gates = apply(SceneGenNet.actor_gates, raster)
-    state, h2 = apply(SceneGenNet.recur, state, gates + map_gates)
+    order = apply(SceneGenNet.order_gates, prev_bins[:, 0])
+    state, h2 = apply(SceneGenNet.recur, state, gates + map_gates + order)
     first = heads_of(params, h2, cls[:, 0], bins[:, 0])
 
     def step(carry, x):
         state, gates, before = carry
-        drawn, at_cls, at = x  # the previous step's actor; this step's target class and bin
+        # The previous step's actor; this step's target class and bin, previous actor's bin.
+        drawn, at_cls, at, prev = x
         after = draw(before, drawn, jnp.zeros((b,), bool))
         gates = apply(SceneGenNet.next_actor_gates, gates, before, after, drawn.position)
-        state, h2 = apply(SceneGenNet.recur, state, gates + map_gates)
+        order = apply(SceneGenNet.order_gates, prev)
+        state, h2 = apply(SceneGenNet.recur, state, gates + map_gates + order)
         return (state, gates, after), heads_of(params, h2, at_cls, at)
 
-    steps_major = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), (win, cls, bins))
+    steps_major = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), (win, cls, bins, prev_bins))
     drawn = jax.tree.map(lambda x: x[:-1], steps_major[0])
     (state, _, raster), rest = jax.lax.scan(
-        step, (state, gates, raster), (drawn, steps_major[1][1:], steps_major[2][1:]),
+        step, (state, gates, raster),
+        (drawn, steps_major[1][1:], steps_major[2][1:], steps_major[3][1:]),
         unroll=backend.STEP_LOOP_UNROLL,
     )
     last = jax.tree.map(lambda x: x[-1], steps_major[0])
@@ -339,7 +359,7 @@ def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | 
       (terms: dict name -> [B, T] log-likelihoods, zero at padding steps; step_valid [B, T];
       step_cls [B, T] with STOP at the stop step), T = windows * cfg.bptt_window.
     """
-    scenes = _scenes(params, cfg, scene)
+    scenes = _scenes(params, cfg, maps, scene)
     map_gates = SceneGenNet(cfg).apply({"params": params}, maps, method=SceneGenNet.map_gates)
 
     def window(carry, index):
@@ -364,7 +384,7 @@ def unroll_terms_and_grads(params, cfg: Config, maps, scene: Scene, scale):
     convolution once. Equal to `jax.grad` of that sum through `unroll_terms` (tested).
     """
     net = SceneGenNet(cfg)
-    scenes = _scenes(params, cfg, scene)
+    scenes = _scenes(params, cfg, maps, scene)
     map_gates, map_vjp = jax.vjp(
         lambda p: net.apply({"params": p}, maps, method=SceneGenNet.map_gates), params
     )

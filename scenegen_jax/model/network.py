@@ -195,6 +195,8 @@ class SceneGenNet(nn.Module):
             self.lstm1_map = self.param("lstm1_map", conv_init, (5, 5, cm, 4 * h))
         if cfg.coord_channels:
             self.lstm1_coord = self.param("lstm1_coord", conv_init, (5, 5, 2, 4 * h))
+        if cfg.order_channel:
+            self.lstm1_order = self.param("lstm1_order", conv_init, (5, 5, 1, 4 * h))
         if cfg.orientation_bins:
             self.lstm1_orient = self.param(
                 "lstm1_orient", conv_init, (5, 5, cfg.orientation_bins, 4 * h))
@@ -246,6 +248,12 @@ class SceneGenNet(nn.Module):
         else:
             # One MLP whose last layer outputs all three (box | heading | velocity).
             self.attr_mlps = [self._attribute_mlp("attr", sum(sizes), np.concatenate(rows))]
+        if cfg.attribute_map_input:
+            # Layer 0's weights for the map channels at the actor's bin, per attribute MLP.
+            self.attr_map_w = [
+                self.param(f"{name}0_map_w", _stacked(conv_init, n), (n, cm, h))
+                for name in ATTRIBUTES
+            ]
 
     def _attribute_mlp(self, name: str, out: int, last_bias):
         """One per-class three-layer MLP's parameters, ([w0, w1, w2], [b0, b1, b2]), with
@@ -287,6 +295,16 @@ class SceneGenNet(nn.Module):
             coords = jnp.stack([rows, cols], axis=-1)[None].astype(gates.dtype)
             gates = gates + conv(coords, self.lstm1_coord)  # the same for every scene
         return gates
+
+    def order_gates(self, prev_bin):
+        """Share of layer 1's input gates of the canonical order's channel (`order_channel`):
+        1 on the bins at or after `prev_bin` [B] (the previous actor's bin; 0 at a scene's
+        first step), 0 before. [B, H, W, 4h], or the scalar 0 without the channel."""
+        if not self.cfg.order_channel:
+            return jnp.zeros((), jnp.float32)
+        n = self.cfg.grid_size
+        allowed = jnp.arange(n * n)[None] >= jnp.asarray(prev_bin)[:, None]
+        return conv(allowed.reshape(-1, n, n, 1).astype(jnp.float32), self.lstm1_order)
 
     def actor_gates(self, actor_raster):
         """Actor share of layer 1's input gates: [B,H,W,9] -> [B,H,W,4h] (no bias)."""
@@ -396,10 +414,19 @@ class SceneGenNet(nn.Module):
         x = layer(x, 2)
         return x.reshape(x.shape[0], -1)
 
-    def attributes(self, feat, cls):
-        """Raw (box, heading, velocity) parameters from feature vectors [B, h] for class [B]."""
+    def attributes(self, feat, cls, map_feat=None):
+        """Raw (box, heading, velocity) parameters from feature vectors [B, h] for class [B];
+        with `attribute_map_input`, also from the map channels at the bins, map_feat [B, Cm]
+        (ignored otherwise)."""
         cls = jnp.clip(cls, 0, NUM_CLASSES - 1)
-        outs = [_mlp(feat, ws, bs, cls) for ws, bs in self.attr_mlps]
+        if self.cfg.attribute_map_input:
+            x = jnp.concatenate([feat, map_feat.astype(feat.dtype)], axis=-1)
+            outs = [
+                _mlp(x, [jnp.concatenate([ws[0], wm], axis=1), *ws[1:]], bs, cls)
+                for (ws, bs), wm in zip(self.attr_mlps, self.attr_map_w, strict=True)
+            ]
+        else:
+            outs = [_mlp(feat, ws, bs, cls) for ws, bs in self.attr_mlps]
         if len(outs) == len(ATTRIBUTES):
             return tuple(outs)
         nb, nh, _ = attribute_sizes(self.cfg.num_mixtures)
@@ -410,10 +437,21 @@ class SceneGenNet(nn.Module):
         """One full step from a zero state (used to initialise every parameter)."""
         state = self.initial_state(map_raster.shape[0])
         gates = self.map_gates(map_raster) + self.actor_gates(actor_raster)
+        gates = gates + self.order_gates(jnp.zeros(map_raster.shape[:1], jnp.int32))
         _, h2 = self.recur(state, gates)
         f = self.features(h2)
         feat = f.reshape(f.shape[0], -1, f.shape[-1])[jnp.arange(f.shape[0]), bins]
-        return self.class_logits(f), self.location_logits(f, cls), self.attributes(feat, cls)
+        map_feat = map_at_bins(map_raster, bins)
+        return (self.class_logits(f), self.location_logits(f, cls),
+                self.attributes(feat, cls, map_feat))
+
+
+def map_at_bins(map_raster, bins):
+    """The map channels at bins [B, ...] of rasters [B, H, W, Cm]: [B, ..., Cm]."""
+    b, h, w, cm = map_raster.shape
+    flat = map_raster.reshape(b, h * w, cm)  # not -1: a raster may have no channels
+    idx = jnp.arange(b).reshape((b,) + (1,) * (jnp.ndim(bins) - 1))
+    return flat[idx, bins]
 
 
 def init_params(cfg: Config, key):

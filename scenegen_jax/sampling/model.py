@@ -25,12 +25,16 @@ class Model(Protocol):
     def actor_gates(self, params: Any, actor_raster: jnp.ndarray) -> jnp.ndarray: ...
     def next_actor_gates(self, params: Any, gates: jnp.ndarray, before: jnp.ndarray,
                          after: jnp.ndarray, position: jnp.ndarray) -> jnp.ndarray: ...
+    def order_gates(self, params: Any, prev_bin: jnp.ndarray) -> jnp.ndarray:
+        """The canonical order's share of the input gates, given the previous actor's bin."""
     def recur(self, params: Any, state: Any, gates: jnp.ndarray) -> tuple[Any, jnp.ndarray]:
         """One recurrent step; state None is `initial_state` (the first step)."""
     def features(self, params: Any, h: jnp.ndarray) -> jnp.ndarray: ...
     def class_logits(self, params: Any, f: jnp.ndarray) -> jnp.ndarray: ...
     def location_logits(self, params: Any, f: jnp.ndarray, cls: jnp.ndarray) -> jnp.ndarray: ...
-    def attributes(self, params: Any, feat: jnp.ndarray, cls: jnp.ndarray) -> tuple: ...
+    def attributes(self, params: Any, feat: jnp.ndarray, cls: jnp.ndarray,
+                   map_feat: jnp.ndarray) -> tuple:
+        """Raw attribute parameters from features and map channels at the bins."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,6 +64,9 @@ class NetworkModel:
     def next_actor_gates(self, params, gates, before, after, position):
         return self._apply(params, SceneGenNet.next_actor_gates, gates, before, after, position)
 
+    def order_gates(self, params, prev_bin):
+        return self._apply(params, SceneGenNet.order_gates, prev_bin)
+
     def recur(self, params, state, gates):
         return self._apply(params, SceneGenNet.recur, state, gates)
 
@@ -72,5 +79,5 @@ class NetworkModel:
     def location_logits(self, params, f, cls):
         return self._apply(params, SceneGenNet.location_logits, f, cls, self.single_example)
 
-    def attributes(self, params, feat, cls):
-        return self._apply(params, SceneGenNet.attributes, feat, cls)
+    def attributes(self, params, feat, cls, map_feat):
+        return self._apply(params, SceneGenNet.attributes, feat, cls, map_feat)

@@ -13,14 +13,16 @@ draws each actor's box, heading and velocity.
 One step t (key `fold_in(key, t)`):
   1. Input gates = map gates (computed once per scene before the loop: the map is constant)
      + actor gates of the current actor raster (carried, and updated after each step by a
-     convolution over the new actor's drawing window only: `SceneGenNet.next_actor_gates`);
+     convolution over the new actor's drawing window only: `SceneGenNet.next_actor_gates`)
+     + with `order_channel`, the gates of the bins at or after the previous actor's bin;
      ConvLSTM step; backbone features.
   2. Class from the categorical over (vehicle, pedestrian, bicyclist, stop); classes at their
      cap get zero mass. STOP ends the scene.
   3. Location: the class's logits masked to bins >= the previous actor's bin (canonical
      order, ties allowed) and renormalised; no allowed bin ends the scene.
   4. Candidates: R = `candidates` i.i.d. (bin, uniform position in the bin, attributes) draws.
-     Attributes come from the class's MLP at the bin's feature vector; box size, heading and
+     Attributes come from the class's MLP at the bin's feature vector (with
+     `attribute_map_input`, and the map channels at the bin); box size, heading and
      velocity are each the most likely of M = `proposals` draws (best-of-M; M = 1 is plain
      sampling). Pedestrians: nominal square box (`cfg.pedestrian_size_m`), heading = the
      velocity direction (0 when standing); their box and heading are not modelled.
@@ -62,6 +64,7 @@ from scenegen_jax.distributions import (
     sample_bins,
     sample_class,
 )
+from scenegen_jax.model.network import map_at_bins
 from scenegen_jax.raster.actors import draw_actor, empty_actor_raster
 from scenegen_jax.sampling.attributes import sample_attributes
 from scenegen_jax.sampling.geometry import collides
@@ -182,16 +185,19 @@ def _take(tree, i):
     return jax.tree.map(lambda x: x[i], tree)
 
 
-def _candidates(key, params, model: Model, f, cls, log_probs, cfg: Config, proposals, count):
+def _candidates(key, params, model: Model, f, map_raster, cls, log_probs, cfg: Config,
+                proposals, count):
     """`count` i.i.d. candidate actors of class `cls`: bins from `log_probs` [H*W] (-inf
-    outside the allowed set), positions uniform in the bins, best-of-M attributes."""
+    outside the allowed set), positions uniform in the bins, best-of-M attributes from the
+    features f [1, H, W, h] and map channels map_raster [1, H, W, Cm] at the bins."""
     k_bin, k_pos, k_attr = jax.random.split(key, 3)
     bins = sample_bins(k_bin, log_probs, count, cfg.grid_size)
     u = jax.random.uniform(k_pos, (count, 2), minval=_EDGE, maxval=1.0 - _EDGE)
     position = bin_center(bins, cfg) + (u - 0.5) * cfg.m_per_px
     feat = f[0].reshape(-1, f.shape[-1])[bins]  # [R, hidden]
     classes = jnp.full((count,), cls, jnp.int32)
-    box_raw, heading_raw, velocity_raw = model.attributes(params, feat, classes)
+    box_raw, heading_raw, velocity_raw = model.attributes(
+        params, feat, classes, map_at_bins(map_raster, bins[None])[0])
     size, heading, velocity = sample_attributes(
         jax.random.split(k_attr, count), box_raw, heading_raw, velocity_raw, classes, cfg,
         proposals)
@@ -205,8 +211,8 @@ def _candidates(key, params, model: Model, f, cls, log_probs, cfg: Config, propo
     )
 
 
-def _place(key, params, model: Model, f, cls, log_probs, state: SamplerState, ego: Actors,
-           cfg: Config, proposals: int, candidates: int, rounds: int):
+def _place(key, params, model: Model, f, map_raster, cls, log_probs, state: SamplerState,
+           ego: Actors, cfg: Config, proposals: int, candidates: int, rounds: int):
     """Draws candidates round by round until one is collision-free (see module docstring).
 
     Returns:
@@ -220,8 +226,8 @@ def _place(key, params, model: Model, f, cls, log_probs, state: SamplerState, eg
         lp = jnp.where(banned, -jnp.inf, log_probs)
         any_left = jnp.any(jnp.isfinite(lp))
         lp = jnp.where(any_left, lp, 0.0)  # keeps the categorical finite; result unused then
-        bins, cands = _candidates(jax.random.fold_in(key, r), params, model, f, cls, lp, cfg,
-                                  proposals, candidates)
+        bins, cands = _candidates(jax.random.fold_in(key, r), params, model, f, map_raster,
+                                  cls, lp, cfg, proposals, candidates)
         hit = jax.vmap(collides, in_axes=(0, None, None))(cands, state.actors, ego)
         ok = any_left & jnp.logical_not(boxed & hit)
         return bins, cands, ok, any_left
@@ -308,13 +314,14 @@ def rollout(
     steps = jnp.asarray(options.heatmap_steps, jnp.int32).reshape(-1)
     ego = jax.tree.map(jnp.asarray, ego)
 
-    map_gates = model.map_gates(params, jnp.asarray(map_raster, jnp.float32)[None])
+    map_raster = jnp.asarray(map_raster, jnp.float32)[None]
+    map_gates = model.map_gates(params, map_raster)
     raster = draw_actor(empty_actor_raster(cfg), ego, True, cfg)
 
     def step(state: SamplerState, first: bool = False) -> SamplerState:
         t = state.count
         k_class, k_place = jax.random.split(jax.random.fold_in(key, t))
-        gates = map_gates + state.actor_gates
+        gates = map_gates + state.actor_gates + model.order_gates(params, state.prev_bin[None])
         lstm, h = model.recur(params, None if first else state.lstm, gates)
         f = model.features(params, h)
 
@@ -334,8 +341,9 @@ def rollout(
         any_valid = jnp.any(jnp.isfinite(log_probs))
         # Forced and stop steps draw no candidates (no allowed bin: the round loop is skipped).
         place_lp = jnp.where(forced | is_stop, -jnp.inf, log_probs)
-        sampled, found, rejected = _place(k_place, params, model, f, safe_cls, place_lp, state,
-                                          ego, cfg, m, options.candidates, options.rounds)
+        sampled, found, rejected = _place(k_place, params, model, f, map_raster, safe_cls,
+                                          place_lp, state, ego, cfg, m, options.candidates,
+                                          options.rounds)
         actor = _where(forced, g.replace(valid=jnp.bool_(True)), sampled)
         placed = forced | (jnp.logical_not(is_stop) & any_valid & found)
         actor = actor.replace(valid=placed)

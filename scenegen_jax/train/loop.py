@@ -240,10 +240,12 @@ def train(
     return state
 
 
-# Parameters a warm start may lack in its source: the map, lane orientation sector and
-# coordinate shares of layer 1's input convolution (a source trained without those inputs).
-# Zero, they leave the source's model as is.
-ZERO_IF_MISSING = ("lstm1_map", "lstm1_coord", "lstm1_orient")
+# Parameters a warm start may lack in its source: the map, lane orientation sector,
+# coordinate and canonical order shares of layer 1's input convolution, and the attribute
+# MLPs' weights of the map at the bin (a source trained without those inputs). Zero, they
+# leave the source's model as is.
+ZERO_IF_MISSING = ("lstm1_map", "lstm1_coord", "lstm1_orient", "lstm1_order",
+                   *(f"{name}0_map_w" for name in ATTRIBUTES))
 SHARED_ATTRIBUTE_MLP = "attr"  # its parameters' prefix (`separate_attribute_mlps` false)
 
 
@@ -271,10 +273,11 @@ def split_attribute_mlp(source: dict, params: dict) -> dict:
 def warm_start(params, source, name: str):
     """`params` with every parameter taken from `source` (same names and shapes), so training
     starts from the source's model. The only parameters the source may lack are the map,
-    lane orientation sector and coordinate shares of layer 1's input convolution
-    (`ZERO_IF_MISSING`): they start at zero (those inputs then change nothing until training
-    moves them), so a model can be extended with map layers, `orientation_bins` or
-    `coord_channels`; and per-attribute MLPs, which start as copies of a shared attribute MLP
+    lane orientation sector, coordinate and canonical order shares of layer 1's input
+    convolution and the attribute MLPs' map weights (`ZERO_IF_MISSING`): they start at zero
+    (those inputs then change nothing until training moves them), so a model can be extended
+    with map layers, `orientation_bins`, `coord_channels`, `order_channel` or
+    `attribute_map_input`; and per-attribute MLPs, which start as copies of a shared attribute MLP
     (`split_attribute_mlp`: the same outputs).
 
     Raises:
