@@ -12,7 +12,10 @@
 # (pretrained_run_shared_metrics.jsonl). A new phase starts with:
 #   INIT_FROM=DIR experiments/pretrained_run.sh   (DIR: the previous phase's workdir; only
 #   used when experiments/pretrained_run has no checkpoint yet)
-# Usage: experiments/pretrained_run.sh [STEPS] [CORE] [MINUTES]
+# NOMAP=1 experiments/pretrained_run.sh ... trains the same recipe without map layers (and so
+# without attribute_map_input), from scratch, in experiments/nomap_run/: the model the
+# shipped one is compared with by `scenegen compare` once it has as many steps (issue 21).
+# Usage: [NOMAP=1] experiments/pretrained_run.sh [STEPS] [CORE] [MINUTES]
 set -euo pipefail
 cd "$(dirname "$0")/.."
 STEPS=${1:-20000}
@@ -27,10 +30,15 @@ prep() {  # SOURCE ROOT SPLIT OUT [prepare options]
 prep av2 "$SHARED/av2_sensor_mini" train runs/cache_cpu_av2_train --stride 1
 prep womd_json "$SHARED/womd_mini/gpudrive_json" train runs/cache_cpu_womdjson_train
 prep scenarionet "$SHARED/womd_mini/scenarionet" train runs/cache_cpu_womdpkl_train
+if [ -n "${NOMAP:-}" ]; then
+    WORKDIR=experiments/nomap_run INPUTS="map_layers=none"
+else
+    WORKDIR=experiments/pretrained_run INPUTS="attribute_map_input=true"
+fi
 XLA_FLAGS=--xla_cpu_multi_thread_eigen=false taskset -c "$CORE" $BIN/scenegen train \
-    --config cpu --set coord_channels=true order_channel=true attribute_map_input=true \
+    --config cpu --set coord_channels=true order_channel=true $INPUTS \
     warmup_steps=50 ${INIT_FROM:+--init-from "$INIT_FROM"} \
-    --workdir experiments/pretrained_run --steps "$STEPS" --save-every 50 \
+    --workdir "$WORKDIR" --steps "$STEPS" --save-every 50 \
     --keep 1 --log-every 10 ${MINUTES:+--minutes "$MINUTES"} \
     --data "$PWD/runs/cache_cpu_av2_train" "$PWD/runs/cache_cpu_womdjson_train" \
     "$PWD/runs/cache_cpu_womdpkl_train"

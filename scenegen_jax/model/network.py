@@ -420,6 +420,9 @@ class SceneGenNet(nn.Module):
         (ignored otherwise)."""
         cls = jnp.clip(cls, 0, NUM_CLASSES - 1)
         if self.cfg.attribute_map_input:
+            if map_feat is None:
+                raise ValueError("attribute_map_input: attributes() needs the map channels at "
+                                 "the bins (map_feat)")
             x = jnp.concatenate([feat, map_feat.astype(feat.dtype)], axis=-1)
             outs = [
                 _mlp(x, [jnp.concatenate([ws[0], wm], axis=1), *ws[1:]], bs, cls)
