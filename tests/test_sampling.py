@@ -27,7 +27,6 @@ from scenegen_jax.distributions import (
     BOX_PARAMS,
     HEADING_PARAMS,
     VELOCITY_PARAMS,
-    box_proposal_score,
     heading_log_prob,
     sample_box,
     sample_heading,
@@ -131,7 +130,8 @@ def test_boxes_overlap_matches_shapely():
 
 # ----------------------------------------------------------------------------- best-of-M
 def test_sample_attributes_keeps_the_most_likely_of_m_proposals():
-    """The flattened best-of-M equals the most likely of M draws written out per actor."""
+    """The flattened best-of-M equals the most likely of M draws written out per actor, for
+    the heading and velocity; the box is one draw."""
     rng = np.random.default_rng(1)
     r, m = 3, 7
     cls = jnp.array([VEHICLE, BICYCLIST, PEDESTRIAN], jnp.int32)
@@ -149,7 +149,7 @@ def test_sample_attributes_keeps_the_most_likely_of_m_proposals():
 
         def one(k, b, h, v, rel):
             k_box, k_head, k_vel = jax.random.split(k, 3)
-            size = best(k_box, sample_box, box_proposal_score, b)
+            size = sample_box(k_box, b)  # one draw: the paper's best-of-M skips the box
             head = best(k_head, sample_heading, heading_log_prob, h)
             # Velocity: the first proposal decides standing vs moving; a moving actor keeps
             # its best moving proposal.
@@ -183,9 +183,9 @@ def test_sample_attributes_keeps_the_most_likely_of_m_proposals():
 
 
 def test_best_of_m_keeps_standing_share_and_mixture_modes():
-    """Best-of-M (M = 10) keeps P(standing) = pi_0 and picks proposals near the mixture's mode
-    in its own coordinates: with planar densities the 1 / s^2 and 1 / (w l) Jacobians made
-    the slowest speed and the smallest box win."""
+    """Best-of-M (M = 10) keeps P(standing) = pi_0 and picks speeds near the mixture's mode in
+    its own coordinates: with the planar density the 1 / s^2 Jacobian made the slowest speed
+    win. The box, one draw, has the median of its log-normal."""
     k = TINY.num_mixtures
     n, m = 4000, 10
     box = np.full(BOX_PARAMS(k), -30.0, np.float32)  # one component (others' logits -30)
@@ -401,16 +401,23 @@ def test_fake_model_ordering_mask_excludes_earlier_bins_and_no_bin_stops():
     assert np.all(np.isfinite(out.heatmaps))
 
 
-def test_fake_model_best_of_m_prefers_the_most_likely_proposal():
-    # Box mixture: a sharp component (weight 0.3) and a broad one (0.7). Plain sampling would
-    # give the sharp size ~30% of the time; the best of M = 10 gives it ~97% of the time.
+def test_fake_model_best_of_m_positions_and_one_draw_boxes():
+    # Each step's location: bin b with probability 0.7, bin b + 1 with 0.3. Plain sampling
+    # puts ~30% of the actors on b + 1; the best of M = 10 bins almost never (0.3^10).
+    # Box mixture: a sharp component (weight 0.3) and a broad one (0.7), drawn once as in the
+    # paper (supplementary 3.2: best-of-M for position, heading and velocity): the sharp size
+    # ~30% of the time, where the best of 10 boxes would give it ~97% of the time.
     box = box_raw([0.3, 0.7], [(1.5, 4.0), (0.5, 1.0)], log_var=(-8.0, 0.0))
     spread = np.arange(8) * 128  # one vehicle per 4 grid rows
-    params = fake_params([VEHICLE] * 8, [peaked((b, 30.0)) for b in spread], box=box)
+    odds = 30.0 + math.log(0.3 / 0.7)
+    params = fake_params([VEHICLE] * 8, [peaked((b, 30.0), (b + 1, odds)) for b in spread],
+                         box=box)
     out = run_fake(params)
-    sizes = out.actors.size[out.actors.valid]
+    valid = out.actors.valid
+    np.testing.assert_array_equal(bins_of(out.actors)[valid], np.tile(spread, FAKE_NUM))
+    sizes = out.actors.size[valid]
     sharp = np.all(np.abs(sizes / np.array([1.5, 4.0]) - 1) < 0.05, axis=1)
-    assert sizes.shape[0] >= 60 and sharp.mean() > 0.85, (sizes.shape, sharp.mean())
+    assert sizes.shape[0] == 128 and 0.15 < sharp.mean() < 0.45, (sizes.shape, sharp.mean())
 
 
 def test_fake_model_collision_rejection():

@@ -173,13 +173,6 @@ def velocity_log_prob(
     return jnp.where(moving, moving_lp, log_w[0])
 
 
-def box_proposal_score(raw: jnp.ndarray, size: jnp.ndarray) -> jnp.ndarray:
-    """Best-of-M score of a box proposal: its log density over (log width, log length), the
-    mixture's own coordinates. The density over (width, length) carries the Jacobian
-    1 / (w l), which would make best-of-M favour the smallest proposals."""
-    return box_log_prob(raw, size) + jnp.sum(jnp.log(jnp.maximum(size, MIN_SIZE)))
-
-
 def velocity_proposal_score(
     raw: jnp.ndarray,
     velocity: jnp.ndarray,

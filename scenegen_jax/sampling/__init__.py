@@ -1,10 +1,11 @@
 """Sampling new scenes: a jitted autoregressive rollout with best-of-M proposals, ordering
 masks and collision rejection, vmapped across scenes and keys.
 
-Layers, bottom up: `model` (what the sampler needs from a network), `attributes` (best-of-M
-box, heading and velocity), `rollout` (one scene in one traced function; not re-exported, so
-that `scenegen_jax.sampling.rollout` stays the module), `batch` (keys per scene, batched and
-concurrent calls), `export` (records, frames and files of sampled scenes).
+Layers, bottom up: `model` (what the sampler needs from a network), `attributes` (box size,
+best-of-M heading and velocity), `rollout` (one scene in one traced function, best-of-M
+positions; not re-exported, so that `scenegen_jax.sampling.rollout` stays the module),
+`batch` (keys per scene, batched and concurrent calls), `export` (records, frames and files
+of sampled scenes).
 """
 
 from scenegen_jax.sampling.attributes import (

@@ -1,5 +1,6 @@
-"""Box size, heading and velocity of sampled actors: best-of-M proposals per attribute, then
-clamped and made finite (`MIN_SIZE_M`, `MAX_SIZE_M`, `MAX_SPEED_MPS`)."""
+"""Box size, heading and velocity of sampled actors: one draw of the box, best-of-M proposals
+of the heading and velocity, then clamped and made finite (`MIN_SIZE_M`, `MAX_SIZE_M`,
+`MAX_SPEED_MPS`)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,6 @@ import jax.numpy as jnp
 from scenegen_jax.config import Config
 from scenegen_jax.distributions import (
     best_of_m,
-    box_proposal_score,
     heading_log_prob,
     is_relative_direction,
     sample_box,
@@ -33,20 +33,23 @@ def sample_attributes(
     cfg: Config,
     proposals: int,
 ) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
-    """Box size, heading and velocity of R actors, each the most likely of M draws.
+    """Box size of R actors, one draw each; heading and velocity, each the most likely of M.
 
-    Best-of-M (paper sec. 3.3): M proposals per attribute, keep the most likely under its own
-    mixture (NaN never wins, ties keep the first), with densities in the mixtures' own
-    coordinates: (log width, log length) for boxes (`box_proposal_score`) and (log speed,
-    direction) for velocities (`velocity_proposal_score`). Planar densities would carry the
-    Jacobians 1 / (w l) and 1 / s^2 and make the smallest box and the slowest speed win (with
-    M = 10 every sampled speed fell below 1 m/s). Whether an actor stands is drawn once, by its
-    first velocity proposal (probability pi_0, a probability that is not compared with
-    densities); a moving actor keeps the best of its moving proposals. The velocity is drawn
-    given the chosen heading (its direction is relative to it for vehicles and bicyclists).
-    Each attribute is one `distributions.best_of_m` call over the R actors. Keys: actor r
-    splits keys[r] into (box, heading, velocity) keys, each split into M proposal keys. With
-    M = 1 the single draw is kept (plain sampling).
+    Best-of-M (paper sec. 3.3; supplementary 3.2 names the attributes: position, heading and
+    velocity) keeps the most likely of M proposals under its own mixture (NaN never wins,
+    ties keep the first). The box is drawn once, as the paper does: the most likely of M
+    boxes is the mode of the largest component, so every vehicle came out car-sized and the
+    trucks and buses of the real scenes were never sampled (experiments/results/README.md,
+    session 20). The velocity is scored in its mixture's own coordinates, (log speed,
+    direction) (`velocity_proposal_score`): the planar density carries the Jacobian 1 / s^2
+    and made the slowest speed win (with M = 10 every sampled speed fell below 1 m/s).
+    Whether an actor stands is drawn once, by its first velocity proposal (probability
+    pi_0, a probability that is not compared with densities); a moving actor keeps the best
+    of its moving proposals. The velocity is drawn given the chosen heading (its direction
+    is relative to it for vehicles and bicyclists).
+    Heading and velocity are each one `distributions.best_of_m` call over the R actors. Keys:
+    actor r splits keys[r] into (box, heading, velocity) keys; the last two are each split
+    into M proposal keys. With M = 1 every attribute is one plain draw.
 
     Pedestrians get the nominal square box (`cfg.pedestrian_size_m`) and the velocity
     direction as heading (0 when standing). Outputs are clamped and made finite (see the
@@ -64,7 +67,7 @@ def sample_attributes(
     """
     zero = cfg.zero_speed
     sub = jax.vmap(lambda k: jax.random.split(k, 3))(keys)  # [R, 3]: box, heading, velocity
-    size = best_of_m(sub[:, 0], sample_box, box_proposal_score, box_raw, proposals)
+    size = jax.vmap(sample_box)(sub[:, 0], box_raw)
     heading = best_of_m(sub[:, 1], sample_heading, heading_log_prob, heading_raw, proposals)
     heading = jnp.nan_to_num(heading, nan=0.0, posinf=0.0, neginf=0.0)
 
