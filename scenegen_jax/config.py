@@ -63,8 +63,8 @@ class Config:
         whatever its gradient; the ramp keeps them from silencing backbone channels
         (experiments/results/README.md, session 14).
       grad_clip: global-norm clip (0 disables).
-      proposals: M, best-of-M draws of the position, heading and velocity when sampling
-        (supplementary 3.2; the box size is one draw).
+      proposals: M, best-of-M draws of the heading and velocity when sampling (the box size
+        and the position are one draw each; `sampling.rollout`).
       zero_speed: speeds (m/s) at or below this are the v = 0 point mass.
       pedestrian_size_m: nominal pedestrian footprint side, m (pedestrians are points).
       ego_size_m: (width, length) of the ego box, m.

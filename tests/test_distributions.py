@@ -473,35 +473,6 @@ def test_bin_sampler_draws_the_categorical():
     assert stats.chisquare(counts[allowed], wrong * bins.size).pvalue < 1e-4
 
 
-def test_best_of_m_bins_follow_the_law_of_the_most_likely_of_m_draws():
-    """Best-of-M positions: the bin kept is the most likely of m i.i.d. draws, so
-    P(bin i) = T_i^m - (T_i - p_i)^m, where T_i is the mass of the bins no more likely than
-    bin i (hand-derived; distinct probabilities). m = 1 gives `sample_bins`' own bins."""
-    rng = np.random.default_rng(4)
-    width, m = 8, 3
-    log_probs = rng.normal(0, 1.0, 4 * width)
-    log_probs[[5, 20]] = -np.inf
-    log_probs = sps.log_softmax(log_probs)
-    lp = jnp.asarray(log_probs, jnp.float32)
-    keys = jax.random.split(jax.random.key(2), 8000)
-    fn = jax.jit(jax.vmap(lambda k: D.sample_best_bins(k, lp, 4, m, width)))
-    bins = np.asarray(fn(keys)).ravel()
-    assert bins.dtype == np.int32 and bins.shape == (32000,)
-    counts = np.bincount(bins, minlength=log_probs.size)
-    p = np.exp(log_probs)
-    t = np.array([p[p <= q].sum() for q in p])
-    want = t**m - (t - p) ** m
-    np.testing.assert_allclose(want.sum(), 1.0, rtol=1e-9)
-    allowed = p > 0
-    assert counts[~allowed].sum() == 0
-    assert stats.chisquare(counts[allowed], want[allowed] * bins.size).pvalue > 0.01
-    # The plain categorical is far from it.
-    assert stats.chisquare(counts[allowed], p[allowed] * bins.size).pvalue < 1e-4
-    one = jax.vmap(lambda k: D.sample_best_bins(k, lp, 4, 1, width))(keys[:50])
-    plain = jax.vmap(lambda k: D.sample_bins(k, lp, 4, width))(keys[:50])
-    np.testing.assert_array_equal(one, plain)
-
-
 def test_ordering_mask_with_nothing_left_is_finite():
     logits = jnp.full((N_BINS,), 1e4).at[3].set(-1e4)
     mask = D.ordering_mask(N_BINS, N_BINS)

@@ -116,19 +116,6 @@ def sample_bins(key: jax.Array, log_probs: jnp.ndarray, count: int, width: int) 
     return (rows * width + cols).astype(jnp.int32)
 
 
-def sample_best_bins(
-    key: jax.Array, log_probs: jnp.ndarray, count: int, m: int, width: int
-) -> jnp.ndarray:
-    """`count` bins [count] int32, each the most likely of `m` i.i.d. draws (`sample_bins`)
-    from `log_probs` [H*W]: best-of-M positions (paper sec. 3.3, supplementary 3.2; ties keep
-    the first draw). Within a bin the position's density is uniform, so the bin decides which
-    proposal is the most likely. With m = 1 the same bins as `sample_bins(key, log_probs,
-    count, width)`."""
-    draws = sample_bins(key, log_probs, count * m, width).reshape(count, m)
-    best = jnp.argmax(log_probs[draws], axis=1)
-    return jnp.take_along_axis(draws, best[:, None], axis=1)[:, 0]
-
-
 def sample_location(
     key: jax.Array, logits: jnp.ndarray, cfg: Config, mask: jnp.ndarray | None = None
 ) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:

@@ -2,10 +2,9 @@
 masks and collision rejection, vmapped across scenes and keys.
 
 Layers, bottom up: `model` (what the sampler needs from a network), `attributes` (box size,
-best-of-M heading and velocity), `rollout` (one scene in one traced function, best-of-M
-positions; not re-exported, so that `scenegen_jax.sampling.rollout` stays the module),
-`batch` (keys per scene, batched and concurrent calls), `export` (records, frames and files
-of sampled scenes).
+best-of-M heading and velocity), `rollout` (one scene in one traced function; not
+re-exported, so that `scenegen_jax.sampling.rollout` stays the module), `batch` (keys per
+scene, batched and concurrent calls), `export` (records, frames and files of sampled scenes).
 """
 
 from scenegen_jax.sampling.attributes import (

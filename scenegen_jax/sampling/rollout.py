@@ -21,14 +21,15 @@ One step t (key `fold_in(key, t)`):
   3. Location: the class's logits masked to bins >= the previous actor's bin (canonical
      order, ties allowed) and renormalised; no allowed bin ends the scene.
   4. Candidates: R = `candidates` i.i.d. (bin, uniform position in the bin, attributes) draws.
-     Best-of-M (paper sec. 3.3; supplementary 3.2: position, heading and velocity): each
-     candidate's bin is the most likely of M = `proposals` bins drawn from step 3's
-     categorical (`sample_best_bins`), and its heading and velocity are each the most likely
-     of M draws; its box size is one draw (`sampling.attributes`). M = 1 is plain sampling.
      Attributes come from the class's MLP at the bin's feature vector (with
-     `attribute_map_input`, and the map channels at the bin). Pedestrians: nominal square
-     box (`cfg.pedestrian_size_m`), heading = the velocity direction (0 when standing);
-     their box and heading are not modelled.
+     `attribute_map_input`, and the map channels at the bin): heading and velocity are each
+     the most likely of M = `proposals` draws (best-of-M; M = 1 is plain sampling), the box
+     size is one draw (`sampling.attributes`). The bin is one draw too: the paper's
+     supplementary 3.2 also takes the best of M positions, but with our models that put
+     each actor on the likeliest bins just after the previous one, and the scenes crowded
+     into the first rows of road (experiments/results/README.md, session 20). Pedestrians:
+     nominal square box (`cfg.pedestrian_size_m`), heading = the velocity direction (0 when
+     standing); their box and heading are not modelled.
   5. Collision rejection: a vehicle or bicyclist candidate whose box overlaps the ego or an
      earlier vehicle/bicyclist box is rejected; the first accepted candidate is kept. The first
      round of candidates is exact rejection sampling (the first acceptance in an i.i.d.
@@ -64,7 +65,7 @@ from scenegen_jax.config import Config
 from scenegen_jax.distributions import (
     masked_log_softmax,
     ordering_mask,
-    sample_best_bins,
+    sample_bins,
     sample_class,
 )
 from scenegen_jax.model.network import map_at_bins
@@ -190,12 +191,11 @@ def _take(tree, i):
 
 def _candidates(key, params, model: Model, f, map_raster, cls, log_probs, cfg: Config,
                 proposals, count):
-    """`count` i.i.d. candidate actors of class `cls`: bins, each the best of `proposals`
-    draws from `log_probs` [H*W] (-inf outside the allowed set), positions uniform in the
-    bins, attributes (`sample_attributes`) from the features f [1, H, W, h] and map channels
-    map_raster [1, H, W, Cm] at the bins."""
+    """`count` i.i.d. candidate actors of class `cls`: bins from `log_probs` [H*W] (-inf
+    outside the allowed set), positions uniform in the bins, attributes (`sample_attributes`)
+    from the features f [1, H, W, h] and map channels map_raster [1, H, W, Cm] at the bins."""
     k_bin, k_pos, k_attr = jax.random.split(key, 3)
-    bins = sample_best_bins(k_bin, log_probs, count, proposals, cfg.grid_size)
+    bins = sample_bins(k_bin, log_probs, count, cfg.grid_size)
     u = jax.random.uniform(k_pos, (count, 2), minval=_EDGE, maxval=1.0 - _EDGE)
     position = bin_center(bins, cfg) + (u - 0.5) * cfg.m_per_px
     feat = f[0].reshape(-1, f.shape[-1])[bins]  # [R, hidden]
