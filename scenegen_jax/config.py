@@ -97,6 +97,11 @@ class Config:
         at the bin holds the lane direction that the heading needs; the 16-channel backbone
         passes on only part of it (experiments/results/README.md, sessions 18-19). Needs map
         layers and `separate_attribute_mlps`.
+      attribute_map_skip: with `attribute_map_input`, the map channels at the bin also enter
+        each attribute MLP's last layer, a linear path (beyond the paper) from the lane
+        direction (cos, sin) to the heading mixture's directions, which the hidden ReLU
+        layers only approximate: the sampled headings stood 5-20 degrees off their lanes
+        where the real ones stand within 5 (experiments/results/README.md, session 20).
       separate_attribute_mlps: one three-layer MLP per attribute (box, heading, velocity), as
         the paper's MLP_box, MLP_theta and MLP_v (the presets). False, the form of checkpoints
         saved before this field existed, is one MLP whose last layer outputs all three: the
@@ -131,6 +136,7 @@ class Config:
     orientation_bins: int = 0
     order_channel: bool = False
     attribute_map_input: bool = False
+    attribute_map_skip: bool = False
     separate_attribute_mlps: bool = False
     seed: int = 0
 
@@ -243,6 +249,9 @@ def config_problems(cfg: Config) -> list[str]:
         out.append("attribute_map_input: needs map layers and separate_attribute_mlps, got "
                    f"map_layers {cfg.map_layers!r}, "
                    f"separate_attribute_mlps {cfg.separate_attribute_mlps!r}")
+    if cfg.attribute_map_skip is True and cfg.attribute_map_input is not True:
+        out.append("attribute_map_skip: needs attribute_map_input, got "
+                   f"{cfg.attribute_map_input!r}")
     for name in ("m_per_px", "learning_rate", "pedestrian_size_m"):
         v = getattr(cfg, name)
         if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
@@ -261,7 +270,7 @@ def config_problems(cfg: Config) -> list[str]:
     ):
         out.append(f"ego_size_m: must be two numbers > 0 (width, length), got {cfg.ego_size_m!r}")
     for name in ("rotate_augment", "remat", "coord_channels", "order_channel",
-                 "attribute_map_input", "separate_attribute_mlps"):
+                 "attribute_map_input", "attribute_map_skip", "separate_attribute_mlps"):
         if not isinstance(getattr(cfg, name), bool):
             out.append(f"{name}: must be true or false, got {getattr(cfg, name)!r}")
     return out

@@ -234,10 +234,11 @@ def test_order_channel_and_attribute_map_input_start_at_zero_from_a_warm_start()
     """`order_channel`'s gates are the convolution of a mask that is 1 from the previous
     actor's bin on (hand-built here, checked against `lax.conv`), every bin at a scene's first
     step. Extended from a model without them, the order channel's and the attribute MLPs' map
-    weights (`attribute_map_input`) start at zero and change nothing."""
+    weights (`attribute_map_input`, first and last layer with `attribute_map_skip`) start
+    at zero and change nothing."""
     from scenegen_jax.train.loop import warm_start
 
-    order = CFG.replace(order_channel=True, attribute_map_input=True)
+    order = CFG.replace(order_channel=True, attribute_map_input=True, attribute_map_skip=True)
     net = SceneGenNet(order)
     params = init_state(order, seed=2).params
     n = CFG.grid_size
@@ -252,8 +253,10 @@ def test_order_channel_and_attribute_map_input_start_at_zero_from_a_warm_start()
     assert float(jnp.abs(gates[0] - gates[1]).max()) > 1e-3
 
     source = init_state(CFG, seed=1).params
+    params = {**params, "heading2_map_w": params["heading2_map_w"] + 1.0}  # as if trained
     extended = warm_start(params, source, "src")
     assert not np.any(np.asarray(extended["lstm1_order"]))
+    assert not np.any(np.asarray(extended["heading2_map_w"]))
     assert not np.any(np.asarray(net.apply({"params": extended}, prev,
                                            method=SceneGenNet.order_gates)))
     feat = jax.random.normal(jax.random.key(3), (5, CFG.hidden))
@@ -268,6 +271,35 @@ def test_order_channel_and_attribute_map_input_start_at_zero_from_a_warm_start()
     no_map = net.apply({"params": params}, feat, cls, 0 * map_feat, method=SceneGenNet.attributes)
     for m, z in zip(with_map, no_map, strict=True):
         assert float(jnp.abs(m - z).max()) > 1e-4
+
+
+def test_attribute_map_skip_adds_the_map_at_the_bin_linearly_to_each_output():
+    """`attribute_map_skip`: each attribute's raw output is the `attribute_map_input` MLP's
+    plus map_feat @ W[cls] (W: `{box,heading,velocity}2_map_w` [classes, Cm, out]),
+    written out in numpy; zero weights (a fresh model) give the MLP's outputs."""
+    skip_cfg = CFG.replace(attribute_map_input=True, attribute_map_skip=True)
+    params = init_state(skip_cfg, seed=5).params
+    mlp_only = {k: v for k, v in params.items() if not k.endswith("2_map_w")}
+    rng = np.random.default_rng(6)
+    weights = {f"{a}2_map_w": rng.normal(size=params[f"{a}2_map_w"].shape).astype(np.float32)
+               for a in ("box", "heading", "velocity")}
+    feat = jax.random.normal(jax.random.key(3), (4, CFG.hidden))
+    map_feat = jax.random.uniform(jax.random.key(4), (4, len(CFG.map_channels)))
+    cls = jnp.array([0, 2, 1, 0])
+
+    def attrs(cfg, p):
+        return SceneGenNet(cfg).apply({"params": p}, feat, cls, map_feat,
+                                      method=SceneGenNet.attributes)
+
+    base = attrs(CFG.replace(attribute_map_input=True), mlp_only)
+    for got, want in zip(attrs(skip_cfg, params), base, strict=True):
+        np.testing.assert_array_equal(got, want)
+    got = attrs(skip_cfg, {**params, **weights})
+    m, c = np.asarray(map_feat), np.asarray(cls)
+    for g, b, name in zip(got, base, ("box", "heading", "velocity"), strict=True):
+        w = weights[f"{name}2_map_w"]
+        want = np.asarray(b) + np.stack([m[i] @ w[c[i]] for i in range(4)])
+        np.testing.assert_allclose(g, want, rtol=1e-5, atol=1e-5)
 
 
 def test_separate_attribute_mlps_keep_each_attribute_to_its_own_weights_and_warm_start_exactly():

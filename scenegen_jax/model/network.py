@@ -254,6 +254,12 @@ class SceneGenNet(nn.Module):
                 self.param(f"{name}0_map_w", _stacked(conv_init, n), (n, cm, h))
                 for name in ATTRIBUTES
             ]
+        if cfg.attribute_map_skip:
+            # The last layer's weights for the same map channels (zero: the MLP's outputs).
+            self.attr_map_skip = [
+                self.param(f"{name}2_map_w", zeros, (n, cm, size))
+                for name, size in zip(ATTRIBUTES, sizes, strict=True)
+            ]
 
     def _attribute_mlp(self, name: str, out: int, last_bias):
         """One per-class three-layer MLP's parameters, ([w0, w1, w2], [b0, b1, b2]), with
@@ -417,17 +423,21 @@ class SceneGenNet(nn.Module):
     def attributes(self, feat, cls, map_feat=None):
         """Raw (box, heading, velocity) parameters from feature vectors [B, h] for class [B];
         with `attribute_map_input`, also from the map channels at the bins, map_feat [B, Cm]
-        (ignored otherwise)."""
+        (ignored otherwise), in layer 0 and, with `attribute_map_skip`, in the last layer."""
         cls = jnp.clip(cls, 0, NUM_CLASSES - 1)
         if self.cfg.attribute_map_input:
             if map_feat is None:
                 raise ValueError("attribute_map_input: attributes() needs the map channels at "
                                  "the bins (map_feat)")
-            x = jnp.concatenate([feat, map_feat.astype(feat.dtype)], axis=-1)
+            m = map_feat.astype(feat.dtype)
+            x = jnp.concatenate([feat, m], axis=-1)
             outs = [
                 _mlp(x, [jnp.concatenate([ws[0], wm], axis=1), *ws[1:]], bs, cls)
                 for (ws, bs), wm in zip(self.attr_mlps, self.attr_map_w, strict=True)
             ]
+            if self.cfg.attribute_map_skip:
+                outs = [o + jnp.einsum("bi,bio->bo", m, w[cls])
+                        for o, w in zip(outs, self.attr_map_skip, strict=True)]
         else:
             outs = [_mlp(feat, ws, bs, cls) for ws, bs in self.attr_mlps]
         if len(outs) == len(ATTRIBUTES):

@@ -242,10 +242,10 @@ def train(
 
 # Parameters a warm start may lack in its source: the map, lane orientation sector,
 # coordinate and canonical order shares of layer 1's input convolution, and the attribute
-# MLPs' weights of the map at the bin (a source trained without those inputs). Zero, they
-# leave the source's model as is.
+# MLPs' weights of the map at the bin, first and last layer (a source trained without
+# them). Zero, they leave the source's model as is.
 ZERO_IF_MISSING = ("lstm1_map", "lstm1_coord", "lstm1_orient", "lstm1_order",
-                   *(f"{name}0_map_w" for name in ATTRIBUTES))
+                   *(f"{name}{layer}_map_w" for name in ATTRIBUTES for layer in (0, 2)))
 SHARED_ATTRIBUTE_MLP = "attr"  # its parameters' prefix (`separate_attribute_mlps` false)
 
 
@@ -276,9 +276,9 @@ def warm_start(params, source, name: str):
     lane orientation sector, coordinate and canonical order shares of layer 1's input
     convolution and the attribute MLPs' map weights (`ZERO_IF_MISSING`): they start at zero
     (those inputs then change nothing until training moves them), so a model can be extended
-    with map layers, `orientation_bins`, `coord_channels`, `order_channel` or
-    `attribute_map_input`; and per-attribute MLPs, which start as copies of a shared attribute MLP
-    (`split_attribute_mlp`: the same outputs).
+    with map layers, `orientation_bins`, `coord_channels`, `order_channel`,
+    `attribute_map_input` or `attribute_map_skip`; and per-attribute MLPs, which start as
+    copies of a shared attribute MLP (`split_attribute_mlp`: the same outputs).
 
     Raises:
       ValueError naming `name` and the parameter on a shape mismatch or another missing one.
