@@ -161,7 +161,8 @@ def add_parsers(sub) -> None:
     sp.add_argument("--data", required=True, help="cache whose maps and egos condition the scenes")
     sp.add_argument("--num", type=int, required=True, help="scenes to sample")
     sp.add_argument("--out", required=True, help="output directory")
-    sp.add_argument("--proposals", type=int, help="best-of-M proposals (default: the config's)")
+    sp.add_argument("--proposals", type=int, help="best-of-M proposals of the heading and velocity "
+                    "(default: the config's)")
     sp.add_argument("--seed", type=int, default=0)
     sp.add_argument(
         "--given",
