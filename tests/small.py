@@ -69,3 +69,8 @@ def train_cmd(cache, workdir, steps, *extra):
         "--set",
         *overrides,
     ]
+
+
+def with_xla_flags(env, *flags: str) -> dict:
+    """`env` with `flags` added to its XLA_FLAGS, keeping the suite's own (conftest.py)."""
+    return {**env, "XLA_FLAGS": " ".join([env.get("XLA_FLAGS", ""), *flags]).strip()}

@@ -14,7 +14,7 @@ import time
 import jax
 import numpy as np
 import pytest
-from small import train_cmd
+from small import train_cmd, with_xla_flags
 
 from scenegen_jax.data.safe_pickle import load_pickle
 from scenegen_jax.train.loop import load_trained
@@ -160,7 +160,7 @@ def test_score_and_sample_on_four_devices_and_two_processes(
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
     workdir = single_run
     runs = {"one": (env, 1),
-            "four_devices": ({**env, "XLA_FLAGS": "--xla_force_host_platform_device_count=4"}, 1),
+            "four_devices": (with_xla_flags(env, "--xla_force_host_platform_device_count=4"), 1),
             "two_processes": (env, 2)}
     for name, (run_env, processes) in runs.items():
         out = tmp_path / name

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from small import CFG, random_params, train_cmd, two_small_scenes
+from small import CFG, random_params, train_cmd, two_small_scenes, with_xla_flags
 
 from scenegen_jax.likelihood.batch import Batch, check_batch, crop_batch, gather_batch
 from scenegen_jax.likelihood.unroll import unroll_terms
@@ -159,12 +159,14 @@ def test_empty_scene_is_one_stop_step(tiny_train_cache, small_scenes):
     batch = Batch(batch.canvas, empty, batch.ego)
     params = random_params(CFG, jax.random.key(3))
     maps, scene = crop_batch(batch, jnp.zeros(2), CFG)
-    terms, valid, cls = unroll_terms(params, CFG, maps, scene, CFG.hard_negatives)
+    terms, valid, cls = jax.jit(
+        lambda p: unroll_terms(p, CFG, maps, scene, CFG.hard_negatives))(params)
     assert np.asarray(valid).sum(1).tolist() == [1, 1]
     assert np.asarray(cls)[:, 0].tolist() == [3, 3]
     for k in ("location", "box", "heading", "velocity"):
         assert np.all(np.asarray(terms[k]) == 0)
-    (loss, _), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, CFG, maps, scene)
+    (loss, _), grads = jax.jit(jax.value_and_grad(loss_fn, has_aux=True), static_argnums=1)(
+        params, CFG, maps, scene)
     assert np.isfinite(float(loss)) and float(loss) > 0
     assert all(np.all(np.isfinite(g)) for g in jax.tree.leaves(grads))
 
@@ -357,6 +359,23 @@ def test_initial_parameters_are_the_same_compiled_alone_or_inside_a_trace():
         np.testing.assert_allclose(a, t, rtol=1e-6, atol=1e-7)
 
 
+def test_a_parameter_of_the_wrong_shape_is_named_when_the_network_is_applied():
+    """The network reads its stored parameters without flax's check (which traces each
+    initialiser at every apply) and checks their shapes itself: a parameter of another
+    config's shape is an error that names it, with both shapes."""
+    from flax.errors import ScopeParamShapeError
+
+    from scenegen_jax.model.network import SceneGenNet, init_params
+
+    params = dict(init_params(CFG, jax.random.key(0)))
+    net = SceneGenNet(CFG)
+    state = net.apply({"params": params}, 1, method=SceneGenNet.initial_state)
+    assert state[0][0].shape == (1, CFG.grid_size, CFG.grid_size, CFG.hidden)
+    params["lstm2_w"] = np.zeros((5, 5, 2 * CFG.hidden, 4 * CFG.hidden + 1), np.float32)
+    with pytest.raises(ScopeParamShapeError, match=r"lstm2_w.*\(5, 5, 16, 32\).*\(5, 5, 16, 33\)"):
+        net.apply({"params": params}, 1, method=SceneGenNet.initial_state)
+
+
 def test_orientation_sectors_split_each_direction_between_the_two_nearest_sectors():
     """Hand-computed cases for K = 8 (sector centres every 45 degrees), the wrap at 360
     degrees, lengths below 1 (a lane's blurred edge) and the zero vector (off every lane)."""
@@ -529,11 +548,8 @@ for a, b in zip(jax.tree.leaves(out[0][2]), jax.tree.leaves(out[1][2])):
     np.testing.assert_allclose(a, b, atol=1e-4, rtol=0)
 print("OK", out[0][0], out[1][0])
 """
-    env = {
-        **os.environ,
-        "XLA_FLAGS": "--xla_force_host_platform_device_count=8",
-        "JAX_PLATFORMS": "cpu",
-    }
+    env = with_xla_flags({**os.environ, "JAX_PLATFORMS": "cpu"},
+                         "--xla_force_host_platform_device_count=8")
     res = subprocess.run(
         [sys.executable, "-c", script], env=env, capture_output=True, text=True, cwd=REPO
     )
