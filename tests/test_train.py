@@ -362,8 +362,8 @@ def test_initial_parameters_are_the_same_compiled_alone_or_inside_a_trace():
 def test_a_parameter_of_the_wrong_shape_is_named_when_the_network_is_applied():
     """The network reads its stored parameters without flax's check (which traces each
     initialiser at every apply) and checks their shapes itself: a parameter of another
-    config's shape is an error that names it, with both shapes."""
-    from flax.errors import ScopeParamShapeError
+    config's shape is an error that names it, with both shapes; a missing one, flax's."""
+    from flax.errors import ScopeParamNotFoundError, ScopeParamShapeError
 
     from scenegen_jax.model.network import SceneGenNet, init_params
 
@@ -373,6 +373,9 @@ def test_a_parameter_of_the_wrong_shape_is_named_when_the_network_is_applied():
     assert state[0][0].shape == (1, CFG.grid_size, CFG.grid_size, CFG.hidden)
     params["lstm2_w"] = np.zeros((5, 5, 2 * CFG.hidden, 4 * CFG.hidden + 1), np.float32)
     with pytest.raises(ScopeParamShapeError, match=r"lstm2_w.*\(5, 5, 16, 32\).*\(5, 5, 16, 33\)"):
+        net.apply({"params": params}, 1, method=SceneGenNet.initial_state)
+    del params["lstm2_w"]
+    with pytest.raises(ScopeParamNotFoundError, match="lstm2_w"):
         net.apply({"params": params}, 1, method=SceneGenNet.initial_state)
 
 

@@ -267,8 +267,8 @@ class SceneGenNet(nn.Module):
         compares its shape with `shape`: flax's own check traces `init` (1.4 ms a parameter),
         and every `apply` runs `setup`, which made it 40 % of tracing a train step (~90
         applies of ~60 parameters)."""
-        if self.is_initializing():
-            return self.param(name, init, shape)
+        if self.is_initializing() or not self.has_variable("params", name):
+            return self.param(name, init, shape)  # creates it, or flax's not-found error
         value = self.get_variable("params", name)
         if np.shape(value) != tuple(shape):
             raise errors.ScopeParamShapeError(name, self.scope.path_text, np.shape(value),
