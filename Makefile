@@ -17,13 +17,15 @@ $(VENV)/.installed: pyproject.toml
 	touch $@
 
 # Two pytest workers (one per core of the 2-core machines we test on), each taking whole
-# modules so that module fixtures are built once; TEST_WORKERS=0 runs
-# in this process); the suite's wall time is printed at the end.
+# modules so that module fixtures are built once, the slowest modules first
+# (tests/conftest.py); TEST_WORKERS=0 runs the suite in this process. The suite's wall time
+# is printed at the end.
 TEST_WORKERS ?= 2
 
 test: install
 	@start=$$(date +%s); \
-	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadscope --durations=15; rc=$$?; \
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadscope --no-loadscope-reorder \
+	    --durations=15; rc=$$?; \
 	echo "make test: $$(( $$(date +%s) - start )) s wall"; exit $$rc
 
 # The fuzzed input surface with many more damaged inputs per reader than `make test` runs

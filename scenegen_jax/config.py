@@ -43,7 +43,9 @@ class Config:
       grid_size: H = W of every raster, pixels.
       m_per_px: raster resolution, metres per pixel (region side = grid_size * m_per_px).
       map_layers: layer groups rasterized as map channels (see `LAYER_GROUPS`).
-      max_actors: N, actor slots per scene (excluding the ego).
+      max_actors: N, actor slots per scene (excluding the ego). A scene with more actors in
+        the region keeps the first N in canonical order and has no stop token
+        (`Scene.complete`).
       hidden: ConvLSTM / backbone channels.
       backbone_layers: 3x3 conv layers in the backbone.
       gn_groups: GroupNorm groups. The presets use one group per channel (the paper does not

@@ -73,10 +73,15 @@ class Scene:
     Attributes:
       actors: Actors with N = config.max_actors slots, valid slots first in canonical order.
       ego: Actors without a leading axis (class VEHICLE).
+      complete: bool (batched: [B]): the slots hold every actor of the region. False when the
+        region held more than N actors and those after the N-th in canonical order were
+        dropped (`raster.transform.scene_from_cached`): the likelihood is then that of the
+        N kept actors, without the stop token, since the next actor is not the end.
     """
 
     actors: Actors
     ego: Actors
+    complete: jnp.ndarray | bool = True
 
     def validate(self, cfg: Config, where: str = "scene") -> None:
         """Checks values, region and canonical order; raises ValueError naming the field."""

@@ -15,10 +15,13 @@ WOMD_ROOT = os.path.normpath(os.path.join(REPO, "..", "shared", "data", "womd_mi
 
 
 def pytest_configure(config):
-    """XLA's lowest backend optimisation level for every program the suite compiles, unless
-    XLA_FLAGS is set (`XLA_FLAGS= make test` runs XLA's default level): the same HLO, so the
-    same operations in the same order, with less LLVM optimisation of the generated kernels.
-    Session 21, two workers, Zen 4: 1,615 -> 1,222 s of test time, 821 -> 700 s wall.
+    """XLA's lowest backend optimisation level for every program the suite compiles, and
+    XLA:CPU's older loop emitters in place of its fusion emitters, unless XLA_FLAGS is set
+    (`XLA_FLAGS= make test` runs XLA's defaults): the same HLO, so the same operations in the
+    same order, with less LLVM optimisation of the generated kernels. Session 21, two
+    workers, Zen 4: the level cut 1,615 -> 1,222 s of test time, 821 -> 700 s wall. Session
+    22: at that level the older emitters compile the small train step in 7-9 s instead of
+    11-14 s and run it as fast (at the default level they are slower at both).
 
     One persistent compilation cache for this run, shared by the xdist workers and the
     CLI subprocesses (they inherit the environment; JAX reads JAX_COMPILATION_CACHE_DIR when
@@ -26,7 +29,8 @@ def pytest_configure(config):
     same one. The cache starts empty and is removed at the end, so the suite times a fresh
     machine and never reads or writes the user's ~/.cache."""
     if "XLA_FLAGS" not in os.environ:
-        os.environ["XLA_FLAGS"] = "--xla_backend_optimization_level=0"
+        os.environ["XLA_FLAGS"] = ("--xla_backend_optimization_level=0 "
+                                   "--xla_cpu_use_fusion_emitters=false")
     if hasattr(config, "workerinput") or "JAX_COMPILATION_CACHE_DIR" in os.environ:
         return  # an xdist worker (inherits the controller's), or set by the caller
     path = tempfile.mkdtemp(prefix="scenegen-test-jax-cache-")

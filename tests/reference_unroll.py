@@ -54,17 +54,18 @@ def reference_step_terms(params, cfg: Config, maps, scene: Scene, hard_negatives
     """The teacher-forced terms of every step, step by step (`_reference_steps`)."""
     net = SceneGenNet(cfg)
     n_actors = jnp.sum(scene.actors.valid, axis=1)
+    complete = jnp.broadcast_to(jnp.asarray(scene.complete), n_actors.shape)
     out = {k: [] for k in TERMS}
     for t, f, actors in _reference_steps(params, cfg, maps, scene, int(jnp.max(n_actors)) + 1):
         a = jax.tree.map(lambda x, t=t: x[:, t], actors)
-        is_stop = n_actors == t
+        is_stop = (n_actors == t) & complete  # a truncated scene has no stop token
         target = a.replace(cls=jnp.where(is_stop, STOP, a.cls))
         bins = bin_index(target.position, cfg)
         heads = step_heads(net, params, f, target.cls, bins)
         map_feat = maps.reshape(maps.shape[0], -1, maps.shape[-1])[jnp.arange(maps.shape[0]), bins]
         terms = head_terms(net, params, heads, target, is_stop, cfg, hard_negatives, map_feat)
         for k in TERMS:
-            out[k].append(terms[k] * (t <= n_actors))
+            out[k].append(terms[k] * ((t < n_actors) | is_stop))
     return {k: jnp.stack(v, axis=1) for k, v in out.items()}
 
 

@@ -55,16 +55,19 @@ def fitted(tiny_train_cache, scenes):
 
 
 def test_same_model_scored_twice_is_identical(tiny_train_cache, fitted):
-    a = score_cache(fitted, tiny_train_cache, CFG, batch_size=8, progress=False)
-    b = score_cache(fitted, tiny_train_cache, CFG, batch_size=8, progress=False)
+    """The first 11 scenes of the cache (batches of 8: the last one padded)."""
+    n = 11
+    a = score_cache(fitted, tiny_train_cache, CFG, batch_size=8, progress=False, scenes=range(n))
+    b = score_cache(fitted, tiny_train_cache, CFG, batch_size=8, progress=False, scenes=range(n))
     assert a.keys() == b.keys()
     for k in a:
         np.testing.assert_array_equal(a[k], b[k])
     # Concurrent calls on parts of each batch (3 workers: calls of 2 scenes, the last one
     # padded) score every scene as one call per batch does.
-    n = len(tiny_train_cache)
-    c = score_cache(fitted, tiny_train_cache, CFG, batch_size=8, progress=False, workers=3)
-    d = score_cache(fitted, tiny_train_cache, CFG, batch_size=8, progress=False, workers=1)
+    c = score_cache(fitted, tiny_train_cache, CFG, batch_size=8, progress=False, workers=3,
+                    scenes=range(n))
+    d = score_cache(fitted, tiny_train_cache, CFG, batch_size=8, progress=False, workers=1,
+                    scenes=range(n))
     for k in a:
         assert c[k].shape[0] == d[k].shape[0] == n
         # Other batch shapes round the convolutions differently; the fitted mixtures are
@@ -129,6 +132,15 @@ def test_score_cli_terms_sum_and_top_k(tiny_train_cache, tmp_path, capsys):
         assert float(row["nll_per_actor"]) == pytest.approx(per_actor, abs=2e-3)
     scene_nll = np.array([float(r["scene_nll"]) for r in rows])
     assert summary["scene_nll"] == pytest.approx(scene_nll.mean(), rel=1e-5)
+    # Scenes with more actors in the region than CFG's 9 slots (every one of the tiny cache's)
+    # are scored on their first 9, without the stop token.
+    pos, half = tiny_train_cache.actors.position, CFG.region_m / 2
+    in_region = tiny_train_cache.actors.valid & ((pos >= -half) & (pos < half)).all(-1)
+    truncated = in_region.sum(1) > CFG.max_actors
+    assert truncated.any()
+    assert [int(r["complete"]) for r in rows] == list((~truncated).astype(int))
+    assert [int(r["actors"]) for r in rows] == list(np.minimum(in_region.sum(1), CFG.max_actors))
+    assert summary["scenes_truncated"] == truncated.sum()
     per_actor = np.array([float(r["nll_per_actor"]) for r in rows])
     expected = np.argsort(-per_actor, kind="stable")[:3]
     names = sorted(os.listdir(renders))

@@ -29,6 +29,14 @@ def _batch(cache, idx):
     return gather_batch(cache, np.asarray(idx), CFG)
 
 
+def _crop(cache, idx, thetas, cfg):
+    """`crop_batch` of the two small scenes, the first read as complete: both hold more actors
+    than CFG's 9 slots (so no stop token: `Scene.complete`); the first read as if its region
+    held only those 9 gives the tests a stop token's terms too."""
+    maps, scene = crop_batch(_batch(cache, idx), jnp.asarray(thetas), cfg)
+    return maps, scene.replace(complete=jnp.array([True, False]))
+
+
 @pytest.fixture(scope="module")
 def reference_case(tiny_train_cache, small_scenes):
     """Inputs of the fast-against-reference tests, and the reference's terms (full
@@ -38,7 +46,7 @@ def reference_case(tiny_train_cache, small_scenes):
     # and the map at each actor's bin as an input of the attribute MLPs.
     cfg = CFG.replace(bptt_window=16, order_channel=True, attribute_map_input=True)
     params = random_params(cfg, jax.random.key(1))
-    maps, scene = crop_batch(_batch(tiny_train_cache, small_scenes), jnp.array([0.0, 1.0]), cfg)
+    maps, scene = _crop(tiny_train_cache, small_scenes, [0.0, 1.0], cfg)
     ref = reference_step_terms(params, cfg, maps, scene, None)
 
     def ref_loss(p):
@@ -92,7 +100,7 @@ def test_remat_gives_the_same_loss_and_gradients(tiny_train_cache, small_scenes,
     monkeypatch.setattr(unroll, "HEAD_CHUNK_BYTES", 3 * 2 * 32 * 32 * 8 * 4)
     monkeypatch.setattr(backend, "compiled_step_loop", lambda: step_loop)
     monkeypatch.setattr(backend, "STEP_LOOP_UNROLL", 1)  # the same loop, a smaller body
-    maps, scene = crop_batch(_batch(tiny_train_cache, small_scenes), jnp.array([0.0, 1.0]), CFG)
+    maps, scene = _crop(tiny_train_cache, small_scenes, [0.0, 1.0], CFG)
     params = random_params(CFG, jax.random.key(2))
 
     def loss(p, remat):
@@ -120,7 +128,7 @@ def autodiff_case(tiny_train_cache, small_scenes):
     """Inputs of the window-by-window test, and the mean scene NLL, its stats and its
     gradient by plain autodiff through the whole unroll, computed once for every variant."""
     cfg = CFG.replace(bptt_window=3, hard_negatives=HARD_NEGATIVES)
-    maps, scene = crop_batch(_batch(tiny_train_cache, small_scenes), jnp.array([0.5, 2.0]), cfg)
+    maps, scene = _crop(tiny_train_cache, small_scenes, [0.5, 2.0], cfg)
     params = random_params(cfg, jax.random.key(4))
     value = jax.jit(jax.value_and_grad(loss_fn, has_aux=True), static_argnums=1)(
         params, cfg, maps, scene)
@@ -161,7 +169,7 @@ def test_window_by_window_gradient_equals_autodiff(autodiff_case, remat, compile
 
 def test_truncation_cuts_gradients_between_windows(tiny_train_cache, small_scenes):
     params = random_params(CFG, jax.random.key(2))
-    maps, scene = crop_batch(_batch(tiny_train_cache, small_scenes), jnp.zeros(2), CFG)
+    maps, scene = _crop(tiny_train_cache, small_scenes, [0.0, 0.0], CFG)
 
     def window_loss(p, lo, hi):
         t, _, _ = unroll_terms(p, CFG, maps, scene, None)
@@ -177,3 +185,28 @@ def test_truncation_cuts_gradients_between_windows(tiny_train_cache, small_scene
     # Every step of both windows contributes: the second window's terms are non-zero.
     t, valid, _ = unroll_terms(params, CFG, maps, scene, None)
     assert np.all(np.asarray(t["class"])[np.asarray(valid)] != 0)
+
+
+def test_a_truncated_scene_has_no_stop_token(tiny_train_cache, small_scenes):
+    """The two small scenes hold 13 and 14 actors in the region, more than CFG's 9 slots:
+    cropped, they are not complete, and their likelihood is that of the 9 kept actors with no
+    stop token (the 10th actor is not the end of the scene). The same 9 actors read as a
+    complete scene score the same terms at their 9 steps, plus the stop token's."""
+    from scenegen_jax.scene import STOP
+
+    maps, scene = crop_batch(_batch(tiny_train_cache, small_scenes), jnp.zeros(2), CFG)
+    assert not np.any(np.asarray(scene.complete))
+    assert np.all(np.asarray(scene.actors.valid))  # every slot is taken
+    params = random_params(CFG, jax.random.key(5))
+    unroll = jax.jit(lambda s: unroll_terms(params, CFG, maps, s, None))
+    cut, cut_valid, cut_cls = unroll(scene)
+    whole, whole_valid, whole_cls = unroll(scene.replace(complete=jnp.ones(2, bool)))
+    n = CFG.max_actors
+    np.testing.assert_array_equal(np.asarray(cut_valid).sum(1), [n, n])
+    np.testing.assert_array_equal(np.asarray(whole_valid).sum(1), [n + 1, n + 1])
+    assert not np.any(np.asarray(cut_cls)[np.asarray(cut_valid)] == STOP)
+    np.testing.assert_array_equal(np.asarray(whole_cls)[:, n], [STOP, STOP])
+    for k in cut:
+        np.testing.assert_array_equal(np.asarray(cut[k])[:, :n], np.asarray(whole[k])[:, :n])
+        assert np.all(np.asarray(cut[k])[:, n:] == 0)
+    assert np.all(np.asarray(whole["class"])[:, n] != 0)  # the stop token's class term

@@ -60,25 +60,27 @@ def cmd_score(args) -> None:
 
 
 def write_scores_csv(path: str, scores: dict, cache) -> None:
-    """One row per scene: its index in its own cache, id, actors, scene NLL, NLL per actor,
-    each term's NLL and its source (the cache's label)."""
+    """One row per scene: its index in its own cache, id, actors, whether they are all the
+    region's (0: truncated to max_actors, no stop token), scene NLL, NLL per actor, each
+    term's NLL and its source (the cache's label)."""
     import csv
 
     from scenegen_jax.distributions import TERMS
-    from scenegen_jax.eval.nll import actor_steps, source_slices
+    from scenegen_jax.eval.nll import actor_steps, complete_scenes, source_slices
 
     total = sum(scores[k] for k in TERMS)
     n_actors = actor_steps(scores).sum(1)
+    complete = complete_scenes(scores)
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     with open(path, "w", newline="") as f:
         writer = csv.writer(f)
-        writer.writerow(["index", "scene_id", "actors", "scene_nll", "nll_per_actor",
+        writer.writerow(["index", "scene_id", "actors", "complete", "scene_nll", "nll_per_actor",
                          *[f"{k}_nll" for k in TERMS], "source"])
         for source, part in source_slices(cache):
             for i in range(part.start, part.stop):
                 per_actor = total[i].sum() / max(n_actors[i], 1)
                 writer.writerow([i - part.start, cache.scene_ids[i], int(n_actors[i]),
-                                 f"{total[i].sum():.4f}", f"{per_actor:.4f}",
+                                 int(complete[i]), f"{total[i].sum():.4f}", f"{per_actor:.4f}",
                                  *[f"{scores[k][i].sum():.4f}" for k in TERMS], source])
 
 

@@ -23,7 +23,7 @@ from scenegen_jax.data.cache import Cache
 from scenegen_jax.distributions import TERMS
 from scenegen_jax.likelihood.batch import Batch, crop_batch, gather_batch, to_device
 from scenegen_jax.likelihood.unroll import unroll_terms
-from scenegen_jax.scene import CLASS_NAMES
+from scenegen_jax.scene import CLASS_NAMES, STOP
 
 
 def score_batch(params, batch: Batch, cfg: Config) -> dict:
@@ -88,11 +88,20 @@ def actor_steps(scores: dict) -> np.ndarray:
     return scores["step_valid"] & (scores["step_cls"] < len(CLASS_NAMES))
 
 
+def complete_scenes(scores: dict) -> np.ndarray:
+    """[S] bool: the scene's stop token was scored. False for a scene with more actors in the
+    region than the config's max_actors, scored on the first max_actors in canonical order
+    (`Scene.complete`)."""
+    return np.any(scores["step_valid"] & (scores["step_cls"] == STOP), axis=1)
+
+
 def summarize_scores(scores: dict) -> dict:
-    """Mean scene NLL and mean per-actor NLL by class and by term (paper Table 2 columns)."""
+    """Mean scene NLL and mean per-actor NLL by class and by term (paper Table 2 columns),
+    and the number of scenes truncated to max_actors (`complete_scenes`)."""
     total = sum(scores[k] for k in TERMS)
     valid, cls = scores["step_valid"], scores["step_cls"]
-    out = {"scenes": int(total.shape[0]), "scene_nll": float(np.mean(np.sum(total, axis=1)))}
+    out = {"scenes": int(total.shape[0]), "scene_nll": float(np.mean(np.sum(total, axis=1))),
+           "scenes_truncated": int(np.sum(~complete_scenes(scores)))}
     for c, name in enumerate(CLASS_NAMES):
         m = valid & (cls == c)
         count = int(m.sum())

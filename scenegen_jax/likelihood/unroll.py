@@ -61,10 +61,17 @@ def _pad_slots(actors: Actors, n: int) -> Actors:
     return jax.tree.map(lambda x: jnp.pad(x, [(0, 0), (0, pad)] + [(0, 0)] * (x.ndim - 2)), actors)
 
 
-def _step_targets(actors: Actors, n_actors, t):
+def _stop_and_valid(n_actors, complete, t):
+    """(is_stop, step valid) [B, len(t)] of steps t of scenes with n_actors [B] actors: the
+    actors' steps, then the stop token's step where the scene is `complete` [B] (a truncated
+    scene's next actor is not the end: `Scene.complete`)."""
+    is_stop = (t[None, :] == n_actors[:, None]) & complete[:, None]
+    return is_stop, (t[None, :] < n_actors[:, None]) | is_stop
+
+
+def _step_targets(actors: Actors, n_actors, complete, t):
     """Targets of steps t [W] for batched actors [B, W]: (target actors, is_stop, step valid)."""
-    is_stop = t[None, :] == n_actors[:, None]
-    valid = t[None, :] <= n_actors[:, None]
+    is_stop, valid = _stop_and_valid(n_actors, complete, t)
     cls = jnp.where(is_stop, STOP, actors.cls)
     return actors.replace(cls=cls), is_stop, valid
 
@@ -165,12 +172,14 @@ def scan_windows(body, init, windows: int):
 
 class _Scenes(NamedTuple):
     """What every window of a batch of scenes reads: actors padded to whole windows [B, T],
-    actor counts [B], each step's previous actor's bin [B, T] (0 at the first step; the
-    `order_channel` input), the map channels at each actor's bin [B, T, Cm] (the
-    `attribute_map_input`), the ego-only raster [B, H, W, 9] and the zero ConvLSTM state."""
+    actor counts [B], whether each scene is complete [B] (`Scene.complete`), each step's
+    previous actor's bin [B, T] (0 at the first step; the `order_channel` input), the map
+    channels at each actor's bin [B, T, Cm] (the `attribute_map_input`), the ego-only raster
+    [B, H, W, 9] and the zero ConvLSTM state."""
 
     actors: Actors
     n_actors: jnp.ndarray
+    complete: jnp.ndarray
     prev_bins: jnp.ndarray
     map_feat: jnp.ndarray
     raster0: jnp.ndarray
@@ -190,6 +199,7 @@ def _scenes(params, cfg: Config, maps, scene: Scene) -> _Scenes:
     return _Scenes(
         actors=actors,
         n_actors=jnp.sum(scene.actors.valid, axis=1),
+        complete=jnp.broadcast_to(jnp.asarray(scene.complete, bool), (b,)),
         prev_bins=jnp.concatenate([jnp.zeros_like(bins[:, :1]), bins[:, :-1]], axis=1),
         map_feat=map_at_bins(maps, bins),
         raster0=raster0,
@@ -213,7 +223,8 @@ def window_terms(params, map_gates, carry, start, scenes: _Scenes, cfg: Config,
     win = jax.tree.map(lambda x: jax.lax.dynamic_slice_in_dim(x, start, w, axis=1), scenes.actors)
     prev_bins = jax.lax.dynamic_slice_in_dim(scenes.prev_bins, start, w, axis=1)
     map_feat = jax.lax.dynamic_slice_in_dim(scenes.map_feat, start, w, axis=1)
-    targets, is_stop, valid = _step_targets(win, scenes.n_actors, start + jnp.arange(w))
+    targets, is_stop, valid = _step_targets(win, scenes.n_actors, scenes.complete,
+                                           start + jnp.arange(w))
     bins = bin_index(targets.position, cfg)  # [B, W]
     steps = _scanned_steps if backend.compiled_step_loop() else _unrolled_steps
     heads, state, raster_end = steps(
@@ -340,10 +351,9 @@ def _scanned_steps(net, params, map_gates, state, raster, win: Actors, cls, bins
 def _join_windows(terms: dict, scenes: _Scenes):
     """terms name -> [windows, B, W] as (terms [B, T], step_valid [B, T], step_cls [B, T])."""
     terms = {k: jnp.concatenate(list(v), axis=1) for k, v in terms.items()}
-    t = jnp.arange(scenes.actors.cls.shape[1])
-    step_valid = t[None] <= scenes.n_actors[:, None]
-    step_cls = jnp.where(t[None] == scenes.n_actors[:, None], STOP, scenes.actors.cls)
-    return terms, step_valid, step_cls
+    is_stop, step_valid = _stop_and_valid(scenes.n_actors, scenes.complete,
+                                          jnp.arange(scenes.actors.cls.shape[1]))
+    return terms, step_valid, jnp.where(is_stop, STOP, scenes.actors.cls)
 
 
 def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | None):

@@ -71,7 +71,8 @@ def scene_from_cached(canvas, actors: Actors, ego: Actors, theta, cfg: Config):
       cfg: config.
     Returns:
       (map [H, W, C], Scene with cfg.max_actors slots in canonical order, overflow count)
-      where overflow counts in-region actors beyond cfg.max_actors (dropped).
+      where overflow counts in-region actors beyond cfg.max_actors (dropped; the Scene is
+      then not `complete`).
     """
     rotated = rotate_actors(actors, theta)
     rotated = rotated.replace(valid=rotated.valid & in_region(rotated.position, cfg))
@@ -80,5 +81,5 @@ def scene_from_cached(canvas, actors: Actors, ego: Actors, theta, cfg: Config):
     overflow = jnp.maximum(jnp.sum(ordered.valid) - n, 0)
     pad = max(n - ordered.num_slots, 0)
     kept = jax.tree.map(lambda x: jnp.pad(x, [(0, pad)] + [(0, 0)] * (x.ndim - 1))[:n], ordered)
-    scene = Scene(actors=kept, ego=rotate_actors(ego, theta))
+    scene = Scene(actors=kept, ego=rotate_actors(ego, theta), complete=overflow == 0)
     return crop_map(canvas, theta, cfg), scene, overflow
