@@ -6,6 +6,7 @@ unfinished saves are removed."""
 from __future__ import annotations
 
 import json
+import logging
 import os
 
 import jax
@@ -39,9 +40,13 @@ def _steps(workdir):
 
 def test_damaged_newest_checkpoint_is_set_aside_and_the_rerun_finishes(
         tiny_train_cache, tmp_path, uninterrupted, caplog):
+    caplog.set_level(logging.INFO, logger="scenegen_jax.train.loop")
     workdir = str(tmp_path / "wd")
     train(CFG, tiny_train_cache.path, workdir, STEPS, save_every=EVERY, log_every=2,
           progress=False)
+    # Every scene of the tiny cache holds 13 or more actors in the region, CFG 9 slots.
+    n = len(tiny_train_cache)
+    assert f"{n} of {n} scenes hold more than max_actors = 9 actors" in caplog.text
     meta = os.path.join(workdir, "checkpoints", str(STEPS), "default", "_METADATA")
     open(meta, "w").close()  # empty: orbax cannot restore the step
     train(CFG, tiny_train_cache.path, workdir, STEPS, save_every=EVERY, log_every=2,

@@ -44,6 +44,12 @@ def cache_slots(cfg: Config) -> int:
     return 2 * cfg.max_actors
 
 
+def actors_in_region(cache, cfg: Config) -> np.ndarray:
+    """[S] actors of each scene of a cache (or `CacheUnion`) inside the region of interest,
+    unrotated (a rotation moves a few across its edge)."""
+    return np.sum(cache.actors.valid & np.asarray(in_region(cache.actors.position, cfg)), axis=1)
+
+
 def canvas_radius(cfg: Config) -> float:
     """Radius (m) of the disc that holds the grid under every rotation (its half diagonal)."""
     return cfg.region_m / math.sqrt(2.0)

@@ -19,6 +19,7 @@ from tqdm import tqdm
 from scenegen_jax.backend import is_main_process, make_mesh
 from scenegen_jax.checkpoint import Checkpointer
 from scenegen_jax.config import Config
+from scenegen_jax.data.cache import actors_in_region
 from scenegen_jax.data.union import CacheUnion, load_union
 from scenegen_jax.distributions import TERMS
 from scenegen_jax.likelihood.batch import check_batch, gather_batch, local_rows, to_device
@@ -174,6 +175,11 @@ def train(
     the progress bar.
     """
     cache = load_union(data_dir, cfg)
+    over = int(np.sum(actors_in_region(cache, cfg) > cfg.max_actors))
+    if over:
+        log.info("%d of %d scenes hold more than max_actors = %d actors in the region "
+                 "(unrotated): each trains on its first %d in canonical order, without a stop "
+                 "token", over, len(cache), cfg.max_actors, cfg.max_actors)
     shares = resolve_weights(cache.sizes, weights)
     save_or_check_config(workdir, cfg)
     save_or_check_data(workdir, cache, weights)
