@@ -533,6 +533,7 @@ from scenegen_jax.likelihood.batch import gather_batch, to_device
 from scenegen_jax.train.step import init_state, make_train_step
 from jax.sharding import NamedSharding, PartitionSpec as P
 assert jax.device_count() == 8, jax.devices()
+# One window of 10 steps: two programs to compile, each smaller than with two windows of 8.
 cfg = get_config("tiny").replace(max_actors=9, bptt_window=10, batch_size=8, hidden=8, gn_groups=2)
 cache = load_cache({tiny_train_cache.path!r})
 host = gather_batch(cache, np.arange(8), cfg)
