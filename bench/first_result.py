@@ -4,17 +4,21 @@ scoring batch or sampling batch, with no compilation cache. What a user waits fo
 run shows any progress. One measurement per process; prints one `RESULT {json}` line.
 
     .venv/bin/python bench/first_result.py ours train --config tiny
-    .venv/bin/python bench/first_result.py ours score --config paper --grid 128
+    .venv/bin/python bench/first_result.py export --config paper --grid 128 --model /tmp/m
+    .venv/bin/python bench/first_result.py ours score --model /tmp/m
     bench/.venv-torch/bin/python bench/first_result.py ref train --grid 128   # the reference
 
 Ours runs what the command line runs for the first batch of a preset as it ships (`tiny`,
 `cpu`; `paper` at `--grid`, T 25, B 1, the reference's shape): `compile_train_step` and one
-step on a batch of the preset's size; the scorer's compiled call on the `score` command's
-default batch (8 scenes, one call per core); `sample_scenes` on 8 maps (the stop logit lowered
-as in `run.py`'s sampling case, so scenes fill rather than stop at once). Synthetic scenes
-(`synthetic.py`): the shapes, not the data, set the compile time. The reference (eager
-PyTorch, `../shared/bench/torch_ref/model.py`) runs one train step, one scoring forward pass
-and one sampling step at the same grid, T and B.
+step on a fresh state of the preset, on a batch of its size; for scoring and sampling, the
+model loaded from a model directory as `scenegen score|sample --pretrained DIR` loads it (those
+commands never draw initial parameters), then the scorer's compiled call on the `score`
+command's default batch (8 scenes, one call per core), or `sample_scenes` on 8 maps. The
+directory comes from `export` in an earlier process (not timed): the preset's initial
+parameters with the stop logit lowered as in `run.py`'s sampling case, so that sampled scenes
+fill rather than stop at once. Synthetic scenes (`synthetic.py`): the shapes, not the data,
+set the compile time. The reference (eager PyTorch, `../shared/bench/torch_ref/model.py`)
+runs one train step, one scoring forward pass and one sampling step at the same grid, T and B.
 """
 
 from __future__ import annotations
@@ -40,7 +44,33 @@ def process_age_s() -> float:
     return uptime - int(fields[19]) / os.sysconf("SC_CLK_TCK")
 
 
-def ours(kind: str, config: str, grid: int) -> dict:
+def bench_config(config: str, grid: int):
+    """The preset as it ships; `paper` at `grid` with the reference's T 25 (24 actors and the
+    stop) and B 1."""
+    from scenegen_jax.config import get_config
+
+    if config == "paper":
+        cfg = get_config("paper", grid_size=grid, m_per_px=80.0 / grid, max_actors=24,
+                         bptt_window=25, batch_size=1)
+    else:
+        cfg = get_config(config)
+    return cfg.replace(rotate_augment=False)
+
+
+def export_model(config: str, grid: int, model: str) -> None:
+    """Writes the model directory the score and sample rows load (`save_pretrained`): the
+    preset's initial parameters, the stop logit lowered by 10."""
+    from scenegen_jax.pretrained import save_pretrained
+    from scenegen_jax.scene import STOP
+    from scenegen_jax.train.step import init_state
+
+    cfg = bench_config(config, grid)
+    params = init_state(cfg).params
+    params["class_mlp2"]["bias"] = params["class_mlp2"]["bias"].at[STOP].add(-10.0)
+    save_pretrained(model, cfg, params, 0, "bench/first_result.py export")
+
+
+def ours(kind: str, config: str, grid: int, model: str | None) -> dict:
     os.environ["JAX_ENABLE_COMPILATION_CACHE"] = "false"
     import jax
 
@@ -48,23 +78,22 @@ def ours(kind: str, config: str, grid: int) -> dict:
     from synthetic import synthetic_batch
 
     from scenegen_jax.backend import concurrent_map, default_workers, scoring_compiler_options
-    from scenegen_jax.config import get_config
     from scenegen_jax.eval.nll import score_batch
     from scenegen_jax.likelihood.batch import crop_batch
-    from scenegen_jax.scene import STOP
+    from scenegen_jax.pretrained import load_pretrained
     from scenegen_jax.train.step import compile_train_step, init_state
 
-    if config == "paper":  # the reference's shape: T 25 (24 actors and the stop), B 1
-        cfg = get_config("paper", grid_size=grid, m_per_px=80.0 / grid, max_actors=24,
-                         bptt_window=25, batch_size=1)
-    else:
-        cfg = get_config(config)
-    cfg = cfg.replace(rotate_augment=False)
     t_import = process_age_s()
-    state = init_state(cfg)
+    if kind == "train":
+        cfg = bench_config(config, grid)
+    elif model is None:
+        raise SystemExit(f"{kind} loads a model: --model DIR (written by `export`)")
+    else:
+        cfg, params, _ = load_pretrained(model)
     out = {"what": f"first_{kind}", "ours": True, "config": cfg.name, "grid": cfg.grid_size,
            "max_actors": cfg.max_actors, "imports_s": t_import}
     if kind == "train":
+        state = init_state(cfg)
         batch = jax.device_put(synthetic_batch(cfg, cfg.batch_size, cfg.max_actors))
         t = process_age_s()
         step = compile_train_step(cfg, state, batch)
@@ -72,7 +101,7 @@ def ours(kind: str, config: str, grid: int) -> dict:
         jax.block_until_ready(step(state, batch))
         out["batch"] = cfg.batch_size
     elif kind == "score":
-        b = 1 if config == "paper" else BATCH
+        b = 1 if cfg.name == "paper" else BATCH
         workers = min(default_workers(), b)
         batch = synthetic_batch(cfg.inference(), b, cfg.max_actors, seed=1)
         part = b // workers
@@ -80,15 +109,12 @@ def ours(kind: str, config: str, grid: int) -> dict:
                  for i in range(workers)]
         score = jax.jit(lambda p, b: score_batch(p, b, cfg.inference())["class"],
                         compiler_options=scoring_compiler_options())
-        jax.block_until_ready(list(concurrent_map(lambda x: score(state.params, x), parts,
-                                                  workers)))
+        jax.block_until_ready(list(concurrent_map(lambda x: score(params, x), parts, workers)))
         out.update(batch=b, workers=workers)
     else:
         from scenegen_jax.sampling import sample_scenes
 
-        b = 1 if config == "paper" else BATCH
-        params = jax.tree.map(lambda x: x, state.params)
-        params["class_mlp2"]["bias"] = params["class_mlp2"]["bias"].at[STOP].add(-10.0)
+        b = 1 if cfg.name == "paper" else BATCH
         host = synthetic_batch(cfg, b, 0, seed=2)
         maps, scenes = crop_batch(host, jax.numpy.zeros(b), cfg)
         s = sample_scenes(jax.random.key(0), params, cfg, maps, scenes.ego)
@@ -132,13 +158,21 @@ def ref(kind: str, grid: int) -> dict:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("side", choices=("ours", "ref"))
-    p.add_argument("kind", choices=("train", "score", "sample"))
+    p.add_argument("side", choices=("ours", "ref", "export"))
+    p.add_argument("kind", nargs="?", choices=("train", "score", "sample"))
     p.add_argument("--config", default="tiny", choices=("tiny", "cpu", "paper"))
     p.add_argument("--grid", type=int, default=128, help="paper preset and the reference")
+    p.add_argument("--model", help="model directory: written by export, read by score, sample")
     a = p.parse_args()
     sys.path.insert(0, HERE)
-    row = ours(a.kind, a.config, a.grid) if a.side == "ours" else ref(a.kind, a.grid)
+    if a.side == "export":
+        if not a.model:
+            p.error("export needs --model DIR")
+        export_model(a.config, a.grid, a.model)
+        return
+    if a.kind is None:
+        p.error(f"{a.side} needs a kind: train, score or sample")
+    row = ours(a.kind, a.config, a.grid, a.model) if a.side == "ours" else ref(a.kind, a.grid)
     print("RESULT " + json.dumps(row), flush=True)
 
 

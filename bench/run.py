@@ -48,9 +48,11 @@ import json
 import os
 import platform
 import resource
+import shutil
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -364,17 +366,28 @@ FIRST = os.path.join(HERE, "first_result.py")
 
 def first_results(args) -> list[dict]:
     """Process start to first result, no compilation cache (`first_result.py`): ours for
-    `tiny`, `cpu` and `paper` at grid 128, the reference at grid 128; each in a fresh
+    `tiny`, `cpu` and `paper` at grid 128 (scoring and sampling load a model directory each
+    config's `export` wrote first, untimed), the reference at grid 128; each in a fresh
     process started on an idle machine."""
     rows = []
     py = None if args.only == "ours" else torch_env()
-    for kind in ("train", "score", "sample"):
-        for config in ("tiny", "cpu", "paper") if args.only != "torch" else ():
-            wait_quiet()
-            rows += _run([sys.executable, FIRST, "ours", kind, "--config", config], True)
-        if py:
-            wait_quiet()
-            rows += _run([py, FIRST, "ref", kind, "--grid", "128"], False)
+    models = tempfile.mkdtemp(prefix="scenegen-bench-models-")
+    try:
+        for kind in ("train", "score", "sample"):
+            for config in ("tiny", "cpu", "paper") if args.only != "torch" else ():
+                model = os.path.join(models, config)
+                if kind != "train" and not os.path.isdir(model):
+                    subprocess.run([sys.executable, FIRST, "export", "--config", config,
+                                    "--model", model], check=True)
+                wait_quiet()
+                load = ["--model", model] if kind != "train" else []
+                rows += _run([sys.executable, FIRST, "ours", kind, "--config", config, *load],
+                             True)
+            if py:
+                wait_quiet()
+                rows += _run([py, FIRST, "ref", kind, "--grid", "128"], False)
+    finally:
+        shutil.rmtree(models, ignore_errors=True)
     return rows
 
 
