@@ -2,9 +2,9 @@
 
 What differs between XLA:CPU and accelerators: which loops are compiled (XLA:CPU runs
 convolution gradients inside loops many times slower), the compiler options of the parameter
-initialisation, the train step and the scorer, how many calls run at once and how many scenes
-are vmapped together, the device mesh, and returning the compiler's freed host memory. Also
-where a multi-process job starts and which process writes.
+initialisation, the train step, the scorer and the sampler, how many calls run at once and
+how many scenes are vmapped together, the device mesh, and returning the compiler's freed host
+memory. Also where a multi-process job starts and which process writes.
 
 Concurrent calls: XLA:CPU runs calls made from different host threads side by side. One call
 at a time leaves a core idle whenever the program runs a small serial operation between its
@@ -84,6 +84,17 @@ def train_compiler_options() -> dict | None:
     """XLA compiler options for the train step: `FAST_COMPILE` on XLA:CPU, None (XLA's
     defaults) on other backends."""
     return dict(FAST_COMPILE) if on_cpu() else None
+
+
+def sampling_compiler_options() -> dict | None:
+    """XLA compiler options for the sampler: backend optimisation level 1 on XLA:CPU, None
+    (XLA's defaults) on other backends. Against the default level (2), on one Zen 4 core, the
+    first batch of 8 scenes compiles in 17 s instead of 26-28 (`cpu` preset), 17 against 22
+    (`tiny`), 31 against 35 (`paper` at grid 128), and runs as fast or faster (1.08-1.16 s
+    against 1.25 s a batch at `cpu`; 10.4 s both at `paper`); level 0, or XLA:CPU's loop
+    emitters instead of its fusion emitters, compiled faster still but ran 20-70 % slower
+    (bench/README.md)."""
+    return {"xla_backend_optimization_level": 1} if on_cpu() else None
 
 
 def scoring_compiler_options() -> dict | None:

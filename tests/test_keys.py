@@ -20,7 +20,7 @@ from scenegen_jax.data.cache import load_cache, write_cache
 from scenegen_jax.eval import nll
 from scenegen_jax.eval.evaluate import real_scenes, sample_scenegen
 from scenegen_jax.sampling import sample_scenes
-from scenegen_jax.sampling.batch import _sample_batch
+from scenegen_jax.sampling.batch import jitted_sampler
 from scenegen_jax.train.loop import save_or_check_config
 from scenegen_jax.train.step import init_state
 
@@ -81,11 +81,11 @@ def test_training_settings_do_not_recompile_the_sampler_or_the_scorer(setup):
                TINY.replace(batch_size=2), TINY.replace(warmup_steps=10, name="other")]
     sample_scenes(jax.random.key(0), params, TINY, maps, egos, workers=1)
     nll.score_cache(params, cache, TINY, batch_size=2, progress=False, workers=1)
-    compiled = (_sample_batch._cache_size(), nll._jitted_scorer.cache_info().currsize)
+    compiled = (jitted_sampler()._cache_size(), nll._jitted_scorer.cache_info().currsize)
     for cfg in changed:
         sample_scenes(jax.random.key(1), params, cfg, maps, egos, workers=1)
         nll.score_cache(params, cache, cfg, batch_size=2, progress=False, workers=1)
-    assert (_sample_batch._cache_size(), nll._jitted_scorer.cache_info().currsize) == compiled
+    assert (jitted_sampler()._cache_size(), nll._jitted_scorer.cache_info().currsize) == compiled
     # A model field is a different program.
     sample_scenes(jax.random.key(1), params, TINY.replace(proposals=3), maps, egos, workers=1)
-    assert _sample_batch._cache_size() == compiled[0] + 1
+    assert jitted_sampler()._cache_size() == compiled[0] + 1

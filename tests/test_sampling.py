@@ -53,7 +53,7 @@ from scenegen_jax.sampling import (
     sample_scenes,
     scene_keys,
 )
-from scenegen_jax.sampling.batch import _sample_batch
+from scenegen_jax.sampling.batch import jitted_sampler
 from scenegen_jax.scene import (
     BICYCLIST,
     PEDESTRIAN,
@@ -541,7 +541,7 @@ def test_real_network_scene_properties_and_reproducibility(real_inputs):
     params, maps, egos = real_inputs
     key = jax.random.key(7)
     out = run_real(params, maps, egos, key)
-    compiled = _sample_batch._cache_size()
+    compiled = jitted_sampler()._cache_size()
     again = run_real(params, maps, egos, key)
     jax.tree.map(np.testing.assert_array_equal, out, again)  # same key: bit for bit
     other = run_real(params, maps, egos, jax.random.key(8))
@@ -550,7 +550,7 @@ def test_real_network_scene_properties_and_reproducibility(real_inputs):
 
     caps = np.array([6, 3, 2])
     capped = run_real(params, maps, egos, jax.random.key(9), caps=caps)
-    assert _sample_batch._cache_size() == compiled  # new keys and caps: no recompile
+    assert jitted_sampler()._cache_size() == compiled  # new keys and caps: no recompile
     counts, reasons, rejected = [], collections.Counter(), 0
     for sample, c in ((out, None), (other, None), (capped, caps)):
         for b in range(2):

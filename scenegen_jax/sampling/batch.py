@@ -20,7 +20,13 @@ from jax import lax
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from scenegen_jax.backend import concurrent_map, default_parallel, default_workers, make_mesh
+from scenegen_jax.backend import (
+    concurrent_map,
+    default_parallel,
+    default_workers,
+    make_mesh,
+    sampling_compiler_options,
+)
 from scenegen_jax.config import Config
 from scenegen_jax.raster.transform import crop_map
 from scenegen_jax.sampling.model import Model, NetworkModel
@@ -51,7 +57,6 @@ def _take(tree, i):
     return jax.tree.map(lambda x: x[i], tree)
 
 
-@functools.partial(jax.jit, static_argnames=("cfg", "options", "model"))
 def _sample_batch(keys, params, maps, egos, given, caps, *, cfg: Config,
                   options: SamplerOptions, model: Model | None) -> Sample:
     b, s = keys.shape[:2]
@@ -93,6 +98,15 @@ def _sample_batch(keys, params, maps, egos, given, caps, *, cfg: Config,
     return jax.tree.map(unflat, out)
 
 
+@functools.cache
+def jitted_sampler():
+    """`_sample_batch` jitted (cfg, options and model static) with the backend's sampling
+    compiler options; made on first use, so that importing this module leaves the backend
+    uninitialised (`jax.distributed` must start first)."""
+    return jax.jit(_sample_batch, static_argnames=("cfg", "options", "model"),
+                   compiler_options=sampling_compiler_options())
+
+
 def sample_batch(
     keys: jax.Array,
     params: Any,
@@ -125,8 +139,8 @@ def sample_batch(
     Returns:
       Sample with leading axes [B, S].
     """
-    return _sample_batch(keys, params, maps, egos, given, caps, cfg=cfg.inference(),
-                         options=options, model=model)
+    return jitted_sampler()(keys, params, maps, egos, given, caps, cfg=cfg.inference(),
+                            options=options, model=model)
 
 
 def sample_split(keys: jax.Array, params: Any, maps, egos: Actors, given: Actors, caps, *,
