@@ -72,12 +72,20 @@ def compiled_step_loop() -> bool:
 FAST_COMPILE = {"xla_cpu_opt_preset": "CPU_OPT_PRESET_FAST_COMPILE"}
 
 
+def _backend_level(level: int) -> dict:
+    """XLA:CPU's backend optimisation level as a compiler option, or nothing where XLA_FLAGS
+    sets the level (the test suite's 0, or a user's choice), which the option would override."""
+    if "--xla_backend_optimization_level" in os.environ.get("XLA_FLAGS", ""):
+        return {}
+    return {"xla_backend_optimization_level": level}
+
+
 def init_compiler_options() -> dict | None:
     """XLA compiler options for drawing initial parameters: on XLA:CPU no backend
     optimisation (the initialisers' random-number kernels run once, and compiled at XLA's
     default level they took 4.6 of the 5 s `tiny`'s initialisation took; 1.2 s at level 0),
     None on other backends."""
-    return {"xla_backend_optimization_level": 0} if on_cpu() else None
+    return _backend_level(0) if on_cpu() else None
 
 
 def train_compiler_options() -> dict | None:
@@ -88,7 +96,7 @@ def train_compiler_options() -> dict | None:
     1.88-1.89 s at `tiny`; medians 5.8 against 6.3 s at `cpu`, 10.9 against 10.8 s at
     `paper`); level 0 compiled faster still but ran `tiny`'s step 1.7x slower
     (bench/README.md)."""
-    return {**FAST_COMPILE, "xla_backend_optimization_level": 1} if on_cpu() else None
+    return {**FAST_COMPILE, **_backend_level(1)} if on_cpu() else None
 
 
 def sampling_compiler_options() -> dict | None:
@@ -99,7 +107,7 @@ def sampling_compiler_options() -> dict | None:
     against 1.25 s a batch at `cpu`; 10.4 s both at `paper`); level 0, or XLA:CPU's loop
     emitters instead of its fusion emitters, compiled faster still but ran 20-70 % slower
     (bench/README.md)."""
-    return {"xla_backend_optimization_level": 1} if on_cpu() else None
+    return _backend_level(1) if on_cpu() else None
 
 
 def scoring_compiler_options() -> dict | None:

@@ -486,6 +486,19 @@ print(json.dumps({"off": off, "on": on, "files": sorted(os.listdir(on))}))
     assert any(f.startswith("jit__lambda-") for f in out["files"]), out["files"]
 
 
+def test_xla_flags_optimisation_level_wins_over_the_packages(monkeypatch):
+    """The train step and the sampler compile at XLA:CPU level 1 unless XLA_FLAGS names a
+    level (this suite's 0): an explicit compiler option would override it."""
+    from scenegen_jax.backend import sampling_compiler_options, train_compiler_options
+
+    level = "xla_backend_optimization_level"
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false")
+    assert train_compiler_options()[level] == 1 and sampling_compiler_options()[level] == 1
+    monkeypatch.setenv("XLA_FLAGS", f"--{level}=0 --xla_cpu_multi_thread_eigen=false")
+    assert level not in train_compiler_options() and level not in sampling_compiler_options()
+    assert "xla_cpu_opt_preset" in train_compiler_options()
+
+
 @pytest.mark.slow
 def test_killed_run_resumes_exactly(tiny_train_cache, tmp_path):
     cache = tiny_train_cache.path
