@@ -12,6 +12,8 @@ All arrays are NHWC; leading axes beyond one batch axis are flattened by the cal
 
 from __future__ import annotations
 
+import functools
+
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
@@ -44,11 +46,58 @@ def orientation_sectors(cos, sin, k: int):
     return jnp.hypot(cos, sin)[..., None] * jnp.maximum(0.0, 1.0 - d)
 
 
-def conv(x, w, b=None):
-    """'SAME' stride-1 convolution, x [B, H, W, Ci], w [kh, kw, Ci, Co]."""
-    y = jax.lax.conv_general_dilated(
-        x, w, (1, 1), "SAME", dimension_numbers=("NHWC", "HWIO", "NHWC")
+# Weight gradients of convolutions over more rows than this are summed over bands of at most
+# this many rows (`_banded_conv`). XLA:CPU's (YNNPACK's) weight gradient of a 5 x 5, 32 -> 128
+# convolution, one Zen 4 core: 37 ms at 128 x 128 (90 GFLOP/s), 857 ms at 320 x 320 (25
+# GFLOP/s); in bands of 64 rows 34 and 240 ms (bench/README.md, session 23).
+WEIGHT_GRADIENT_BAND_ROWS = 64
+
+
+def _conv(x, w, padding="SAME"):
+    return jax.lax.conv_general_dilated(
+        x, w, (1, 1), padding, dimension_numbers=("NHWC", "HWIO", "NHWC")
     )
+
+
+def _band_starts(rows: int) -> list[int]:
+    """First row of each band: `ceil(rows / WEIGHT_GRADIENT_BAND_ROWS)` bands of equal size
+    (the last ones a row shorter where it does not divide)."""
+    n = -(-rows // WEIGHT_GRADIENT_BAND_ROWS)
+    return [i * rows // n for i in range(n)] + [rows]
+
+
+@jax.custom_vjp
+def _banded_conv(x, w):
+    """`_conv(x, w)` whose weight gradient is a sum over row bands of the input."""
+    return _conv(x, w)
+
+
+def _banded_conv_fwd(x, w):
+    return _conv(x, w), (x, w)
+
+
+def _banded_conv_bwd(res, g):
+    x, w = res
+    dx = jax.vjp(lambda x: _conv(x, w), x)[1](g)[0]
+    kh, kw = w.shape[:2]
+    pad = [(0, 0), ((kh - 1) // 2, kh // 2), ((kw - 1) // 2, kw // 2), (0, 0)]  # as 'SAME'
+    xp = jnp.pad(x, pad)
+    starts = _band_starts(x.shape[1])
+    dw = jnp.zeros_like(w)
+    for lo, hi in zip(starts[:-1], starts[1:], strict=True):
+        band = jax.lax.slice_in_dim(xp, lo, hi + kh - 1, axis=1)  # the band and its halo
+        valid = functools.partial(_conv, band, padding="VALID")
+        dw = dw + jax.vjp(valid, w)[1](jax.lax.slice_in_dim(g, lo, hi, axis=1))[0]
+    return dx, dw
+
+
+_banded_conv.defvjp(_banded_conv_fwd, _banded_conv_bwd)
+
+
+def conv(x, w, b=None):
+    """'SAME' stride-1 convolution, x [B, H, W, Ci], w [kh, kw, Ci, Co]. Over more than
+    `WEIGHT_GRADIENT_BAND_ROWS` rows, its weight gradient is summed over row bands."""
+    y = _banded_conv(x, w) if x.shape[1] > WEIGHT_GRADIENT_BAND_ROWS else _conv(x, w)
     return y if b is None else y + b
 
 
