@@ -18,6 +18,7 @@ from small import CFG, random_params, train_cmd, two_small_scenes, with_xla_flag
 from scenegen_jax.likelihood.batch import Batch, check_batch, crop_batch, gather_batch
 from scenegen_jax.likelihood.unroll import unroll_terms
 from scenegen_jax.model.network import (
+    BANDED_ABOVE_ROWS,
     WEIGHT_GRADIENT_BAND_ROWS,
     SceneGenNet,
     conv,
@@ -98,10 +99,11 @@ def test_warmup_ramps_adams_step_linearly():
 
 
 def test_banded_weight_gradient_equals_the_convolutions_own():
-    """Over more than WEIGHT_GRADIENT_BAND_ROWS rows a convolution's weight gradient is summed
-    over row bands (with the kernel's halo): values and both gradients as XLA's own
-    convolution's, for kernels 5, 3 and 1 and a row count the bands do not divide."""
-    rows = 2 * WEIGHT_GRADIENT_BAND_ROWS + 3
+    """Over more than BANDED_ABOVE_ROWS rows a convolution's weight gradient is summed over
+    row bands (with the kernel's halo): values and both gradients as XLA's own convolution's,
+    for kernels 5, 3 and 1 and a row count the bands do not divide."""
+    rows = BANDED_ABOVE_ROWS + 3
+    assert rows > 2 * WEIGHT_GRADIENT_BAND_ROWS  # three bands
     kx, kg = jax.random.split(jax.random.key(9))
     x = jax.random.normal(kx, (2, rows, 7, 3))
     for k, kw in zip((5, 3, 1), jax.random.split(jax.random.key(10), 3), strict=True):

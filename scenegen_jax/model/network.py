@@ -46,10 +46,13 @@ def orientation_sectors(cos, sin, k: int):
     return jnp.hypot(cos, sin)[..., None] * jnp.maximum(0.0, 1.0 - d)
 
 
-# Weight gradients of convolutions over more rows than this are summed over bands of at most
-# this many rows (`_banded_conv`). XLA:CPU's (YNNPACK's) weight gradient of a 5 x 5, 32 -> 128
-# convolution, one Zen 4 core: 37 ms at 128 x 128 (90 GFLOP/s), 857 ms at 320 x 320 (25
-# GFLOP/s); in bands of 64 rows 34 and 240 ms (bench/README.md, session 23).
+# Weight gradients of convolutions over more than BANDED_ABOVE_ROWS rows are summed over bands
+# of at most WEIGHT_GRADIENT_BAND_ROWS rows (`_banded_conv`). XLA:CPU's (YNNPACK's) weight
+# gradient of a 5 x 5, 32 -> 128 convolution, one Zen 4 core: 857 ms at 320 x 320 (25
+# GFLOP/s), 240 ms in bands of 64 rows; at 128 x 128 37 against 34 ms, but the `paper` train
+# step at grid 128 compiled 12 s longer and ran 4 % slower on 2 cores, so it is not banded
+# (bench/README.md, session 23).
+BANDED_ABOVE_ROWS = 128
 WEIGHT_GRADIENT_BAND_ROWS = 64
 
 
@@ -96,8 +99,8 @@ _banded_conv.defvjp(_banded_conv_fwd, _banded_conv_bwd)
 
 def conv(x, w, b=None):
     """'SAME' stride-1 convolution, x [B, H, W, Ci], w [kh, kw, Ci, Co]. Over more than
-    `WEIGHT_GRADIENT_BAND_ROWS` rows, its weight gradient is summed over row bands."""
-    y = _banded_conv(x, w) if x.shape[1] > WEIGHT_GRADIENT_BAND_ROWS else _conv(x, w)
+    `BANDED_ABOVE_ROWS` rows, its weight gradient is summed over row bands."""
+    y = _banded_conv(x, w) if x.shape[1] > BANDED_ABOVE_ROWS else _conv(x, w)
     return y if b is None else y + b
 
 
