@@ -6,7 +6,9 @@ paper's width (hidden 32) and grid 128, B 1, on XLA:CPU. Run alone on an idle ma
 - GroupNorm (8 groups), forward and forward + backward: `model.network.group_norm` against
   the same statistics reduced over the grouped 5-D view (the code before session 11);
 - convolutions 3x3 32 -> 32 and 5x5 32 -> 128: forward, input gradient and weight gradient,
-  with XLA's default (YNNPACK) and with `scoring_compiler_options()` (Eigen).
+  with XLA's default (YNNPACK) and with `scoring_compiler_options()` (Eigen);
+- the 5x5 32 -> 128 weight gradient at grids 128 and 320: XLA's, and summed over bands of
+  `WEIGHT_GRADIENT_BAND_ROWS` rows as `conv` does above `BANDED_ABOVE_ROWS` (session 23).
 """
 
 from __future__ import annotations
@@ -18,7 +20,13 @@ import jax
 import jax.numpy as jnp
 
 from scenegen_jax.backend import scoring_compiler_options
-from scenegen_jax.model.network import conv, group_norm
+from scenegen_jax.model.network import (
+    WEIGHT_GRADIENT_BAND_ROWS,
+    _banded_conv,
+    _conv,
+    conv,
+    group_norm,
+)
 
 GRID, HIDDEN, GROUPS = 128, 32, 8
 
@@ -67,6 +75,14 @@ def main() -> None:
             eigen = median_ms(fn, *args, options=scoring_compiler_options())
             print(f"conv {k}x{k} {HIDDEN} -> {c_out}, {op}: YNNPACK {ynn:.2f} ms, "
                   f"Eigen (scoring options) {eigen:.2f} ms")
+    w = 0.1 * jax.random.normal(keys[2], (5, 5, HIDDEN, 4 * HIDDEN))
+    for grid in (128, 320):
+        xg = jax.random.normal(keys[0], (1, grid, grid, HIDDEN))
+        g = jax.random.normal(keys[3], (1, grid, grid, 4 * HIDDEN))
+        xla, banded = (median_ms(lambda x, g, f=f: jax.vjp(lambda v: f(x, v), w)[1](g)[0], xg, g,
+                                 runs=5) for f in (_conv, _banded_conv))
+        print(f"conv 5x5 {HIDDEN} -> {4 * HIDDEN} at {grid} x {grid}, weight gradient: XLA "
+              f"{xla:.1f} ms, in bands of {WEIGHT_GRADIENT_BAND_ROWS} rows {banded:.1f} ms")
 
 
 if __name__ == "__main__":

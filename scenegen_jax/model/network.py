@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import errors
 
-from scenegen_jax.backend import init_compiler_options
+from scenegen_jax.backend import band_weight_gradients, init_compiler_options
 from scenegen_jax.config import Config
 from scenegen_jax.raster.actors import ACTOR_CHANNELS, window_origin, window_size
 from scenegen_jax.raster.map import ORIENTATION_CHANNELS
@@ -63,8 +63,8 @@ def _conv(x, w, padding="SAME"):
 
 
 def _band_starts(rows: int) -> list[int]:
-    """First row of each band: `ceil(rows / WEIGHT_GRADIENT_BAND_ROWS)` bands of equal size
-    (the last ones a row shorter where it does not divide)."""
+    """First rows of `ceil(rows / WEIGHT_GRADIENT_BAND_ROWS)` bands whose sizes differ by at
+    most one row, then `rows`."""
     n = -(-rows // WEIGHT_GRADIENT_BAND_ROWS)
     return [i * rows // n for i in range(n)] + [rows]
 
@@ -99,8 +99,10 @@ _banded_conv.defvjp(_banded_conv_fwd, _banded_conv_bwd)
 
 def conv(x, w, b=None):
     """'SAME' stride-1 convolution, x [B, H, W, Ci], w [kh, kw, Ci, Co]. Over more than
-    `BANDED_ABOVE_ROWS` rows, its weight gradient is summed over row bands."""
-    y = _banded_conv(x, w) if x.shape[1] > BANDED_ABOVE_ROWS else _conv(x, w)
+    `BANDED_ABOVE_ROWS` rows and where the backend wants it (`backend.band_weight_gradients`),
+    its weight gradient is summed over row bands."""
+    banded = x.shape[1] > BANDED_ABOVE_ROWS and band_weight_gradients()
+    y = _banded_conv(x, w) if banded else _conv(x, w)
     return y if b is None else y + b
 
 
