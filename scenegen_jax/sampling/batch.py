@@ -40,16 +40,21 @@ from scenegen_jax.sampling.rollout import (
 from scenegen_jax.scene import NUM_CLASSES, Actors, empty_actors
 
 
+@jax.jit
+def _fold_in_each(key: jax.Array, index: jax.Array) -> jax.Array:
+    return jax.vmap(jax.random.fold_in, in_axes=(None, 0))(key, index.ravel()).reshape(
+        index.shape
+    )
+
+
 def scene_key(key: jax.Array, index) -> jax.Array:
     """The key of scene `index` (int or int array) of a request made with `key`."""
-    return jax.vmap(jax.random.fold_in, in_axes=(None, 0))(key, jnp.ravel(index)).reshape(
-        jnp.shape(index)
-    )
+    return _fold_in_each(key, jnp.asarray(index))
 
 
 def scene_keys(key: jax.Array, num_maps: int, num_per_map: int, first: int = 0) -> jax.Array:
     """[B, S] keys: scene (b, s) is scene `first + b * S + s` (`scene_key`)."""
-    index = first + jnp.arange(num_maps * num_per_map).reshape(num_maps, num_per_map)
+    index = first + np.arange(num_maps * num_per_map).reshape(num_maps, num_per_map)
     return scene_key(key, index)
 
 
@@ -67,6 +72,10 @@ def _sample_batch(keys, params, maps, egos, given, caps, *, cfg: Config,
     def one(key, map_raster, ego, g, c):
         return rollout(key, params, map_raster, ego, cfg, g, c, options, model)
 
+    if b * s == 1:  # one scene (each call on CPU): no vmap, whose batching of the while loops
+        # traced their bodies several times over (sampler trace 2.5 -> 0.5 s, `tiny`)
+        out = one(keys[0, 0], maps[0], _take(egos, 0), _take(given, 0), caps[0])
+        return jax.tree.map(lambda x: x[None, None], out)
     if parallel >= b * s:
         per_map = jax.vmap(one, in_axes=(0, None, None, None, None))
         return jax.vmap(per_map)(keys, maps, egos, given, caps)
@@ -184,7 +193,9 @@ def sample_split(keys: jax.Array, params: Any, maps, egos: Actors, given: Actors
     if parts == 1:
         return _sharded_call(keys, params, (maps, egos, given, caps), devices, kwargs)
     index = np.minimum(np.arange(parts * size), n - 1).reshape(parts, size)
-    per_map = (maps, egos, given, caps)
+    # Parts are cut and joined on the host (numpy): no compiled program per input's shape.
+    impl = jax.random.key_impl(keys)
+    host = jax.tree.map(np.asarray, (jax.random.key_data(keys), maps, egos, given, caps))
 
     # Call c runs on local device c mod D, with the parameters put there once.
     on_device = [params] if len(devices) == 1 else [jax.device_put(params, d) for d in devices]
@@ -192,20 +203,15 @@ def sample_split(keys: jax.Array, params: Any, maps, egos: Actors, given: Actors
     def call(job):
         c, i = job
         d = c % len(devices)
-        on = (lambda x: x) if len(devices) == 1 else functools.partial(
-            jax.device_put, device=devices[d])
-        if axis == 0:
-            inputs = jax.tree.map(lambda x: on(x[i]), (keys, *per_map))
-        else:
-            inputs = (on(keys[:, i]), *jax.tree.map(on, per_map))
-        return sample_batch(inputs[0], on_device[d], *inputs[1:], **kwargs)
+        part = (jax.tree.map(lambda x: x[i], host) if axis == 0
+                else (host[0][:, i], *host[1:]))
+        key_data, *per_map = jax.device_put(part, devices[d])
+        return sample_batch(jax.random.wrap_key_data(key_data, impl=impl), on_device[d],
+                            *per_map, **kwargs)
 
     outs = list(concurrent_map(call, enumerate(index), workers))
-    if len(devices) > 1:  # joined on the first device
-        outs = jax.device_put(outs, devices[0])
-    whole = slice(None)
-    keep = (slice(0, n), whole) if axis == 0 else (whole, slice(0, n))
-    return jax.tree.map(lambda *x: jnp.concatenate(x, axis=axis)[keep], *outs)
+    keep = (slice(0, n),) if axis == 0 else (slice(None), slice(0, n))
+    return jax.tree.map(lambda *x: jnp.asarray(np.concatenate(x, axis=axis)[keep]), *outs)
 
 
 def _sharded_call(keys, params, per_map, devices, kwargs) -> Sample:
@@ -229,17 +235,15 @@ def batch_inputs(cfg: Config, num_maps: int, given: Actors | None = None, caps=N
     or [B, 3].
     """
     n = cfg.max_actors
-    if given is None:
-        given = jax.tree.map(lambda x: jnp.broadcast_to(x, (num_maps, *x.shape)), empty_actors(n))
+    if given is None:  # numpy: no compiled program
+        given = jax.tree.map(lambda x: np.broadcast_to(x, (num_maps, *x.shape)), empty_actors(n))
     else:
         given = jax.tree.map(jnp.asarray, given)
         if given.cls.ndim == 1:
             given = jax.tree.map(lambda x: jnp.broadcast_to(x, (num_maps, *x.shape)), given)
         given = jax.vmap(lambda g: pad_given(g, n))(given)
-    if caps is None:
-        caps = jnp.full((num_maps, NUM_CLASSES), n, jnp.int32)
-    caps = jnp.broadcast_to(jnp.asarray(caps, jnp.int32), (num_maps, NUM_CLASSES))
-    return given, caps
+    caps = np.full((NUM_CLASSES,), n) if caps is None else np.asarray(caps)
+    return given, np.broadcast_to(caps.astype(np.int32), (num_maps, NUM_CLASSES))
 
 
 def sample_scenes(
@@ -354,7 +358,7 @@ def sample_on_cache(
             rows = jax.tree.map(lambda *x: np.stack(x), *[given[k % len(given)] for k in ks])
         sample = sample_scenes(key, params, cfg, np.stack([map_of(i) for i in map_ids]), egos,
                                rows, 1, caps, first=start, options=options)
-        sample = jax.device_get(jax.tree.map(lambda x: x[:, 0], sample))
+        sample = jax.tree.map(lambda x: x[:, 0], jax.device_get(sample))
         for j in range(min(batch_size, scenes.stop - start)):
             row = jax.tree.map(lambda x, j=j: x[j], sample)
             yield CacheScene(start + j, map_ids[j], map_of(map_ids[j]), _take(egos, j),
