@@ -579,7 +579,19 @@ def cpu_fields(is_ours: bool) -> dict:
                    None)
     else:
         cap = os.environ.get("ONEDNN_MAX_CPU_ISA")
-    return {"cpu_model": cpu_model(), "isa": cpu_isa(), "isa_cap": cap}
+    fields = {"cpu_model": cpu_model(), "isa": cpu_isa(), "isa_cap": cap}
+    if is_ours and cap and fields["isa"] != cap:
+        fields["isa_cap_note"] = YNNPACK_UNCAPPED
+    return fields
+
+
+# XLA's cap reaches the code XLA generates, not YNNPACK's kernels (the train step's and the
+# sampler's convolutions and dots), which pick their ISA from CPUID: `perf record` of a
+# 5 x 5 convolution's gradient under the cap, on an Intel Xeon with AVX-512, spent 66 % in
+# `ynn::dot_fp32_5x64x1_1x16x1_avx512`. oneDNN's cap does reach the reference
+# (ONEDNN_VERBOSE: `jit:avx512_core` -> `jit:avx2`). bench/README.md, session 24.
+YNNPACK_UNCAPPED = ("XLA-generated code only; YNNPACK's kernels (convolutions, dots) still "
+                    "use this CPU's widest ISA")
 
 
 def cap_isa(isa: str) -> None:
@@ -589,6 +601,10 @@ def cap_isa(isa: str) -> None:
              if not f.startswith(ISA_CAP_OPTION)]
     os.environ["XLA_FLAGS"] = " ".join([*flags, ISA_CAP_OPTION + isa])
     os.environ["ONEDNN_MAX_CPU_ISA"] = isa
+    if cpu_isa() != isa:
+        print(f"warning: the {isa} cap on this {cpu_isa()} CPU reaches the reference's oneDNN "
+              f"kernels but only {YNNPACK_UNCAPPED}: not a stand-in for an {isa}-only CPU",
+              file=sys.stderr)
 
 
 def cpu_model() -> str:
@@ -649,8 +665,8 @@ def main() -> None:
     p.add_argument("--ref", default=TORCH_REF, help="the reference's folder (accel suite)")
     p.add_argument("--isa", choices=("AVX2",),
                    help="cap both sides' vector ISA (XLA_FLAGS --xla_cpu_max_isa and "
-                   "ONEDNN_MAX_CPU_ISA): the AVX2-only CPUs on any x86 machine "
-                   "(default out: bench/results_avx2.json)")
+                   "ONEDNN_MAX_CPU_ISA; ours' YNNPACK kernels ignore the cap, so on a wider "
+                   "CPU this is no AVX2-only machine; default out: bench/results_avx2.json)")
     p.add_argument("--no-first", action="store_true",
                    help="skip the time-to-first-result rows (bench/first_result.py)")
     sub = p.add_subparsers(dest="cmd")
