@@ -89,7 +89,7 @@ def main() -> None:
     p.add_argument("--steps", type=int, default=8, help="steps to report")
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args()
-    cfg, params, _ = load_model(args)
+    cfg, params, _, _ = load_model(args)
     r = order_drift(params, cfg, load_cache(args.data), args.num, args.steps, args.seed)
     print(f"{args.data}: {len(r['real'])} scenes; mean row of the t-th actor (0 = top)")
     print("step | real | teacher forced, expected | sampling, expected | sampled")

@@ -39,6 +39,31 @@ def test_roundtrip_is_bit_exact(tmp_path):
     _assert_same_tree(params, restored)
 
 
+def test_recommended_sampler_settings_roundtrip_and_are_checked(tmp_path):
+    import argparse
+
+    from scenegen_jax.cli.common import location_temperature
+
+    d = tmp_path / "m"
+    params = init_state(TINY).params
+    save_pretrained(str(d), TINY, params, step=1, source="here",
+                    sampler={"location_temperature": 0.7})
+    sampler = load_pretrained(str(d))[2]["sampler"]
+    assert sampler == {"location_temperature": 0.7}
+    given, unset = (argparse.Namespace(location_temperature=t) for t in (0.5, None))
+    assert location_temperature(given, sampler) == 0.5  # the command line wins
+    assert location_temperature(unset, sampler) == 0.7  # then the model's
+    assert location_temperature(unset, {}) == 1.0  # then the paper's
+    manifest_path = d / "manifest.json"
+    good = json.loads(manifest_path.read_text())
+    for bad, field in (({"location_temperature": 0}, "sampler.location_temperature"),
+                       ({"location_temperature": "0.7"}, "sampler.location_temperature"),
+                       ({"proposals": 3}, "sampler.proposals"), ([0.7], "sampler")):
+        manifest_path.write_text(json.dumps({**good, "sampler": bad}))
+        with pytest.raises(ValueError, match=f"{manifest_path}: field {field}"):
+            load_pretrained(str(d))
+
+
 def test_damaged_or_mismatched_files_name_the_file(tmp_path):
     d = tmp_path / "m"
     save_pretrained(str(d), TINY, init_state(TINY).params, step=1, source="here")

@@ -316,14 +316,14 @@ def peaked(*bins_logits):
 FAKE_NUM = 16  # samples per fake run (one shape: one compile)
 
 
-def run_fake(params, given=None, caps=None, seed=0):
+def run_fake(params, given=None, caps=None, seed=0, location_temperature=1.0):
     """FAKE_NUM fake scenes on one empty map; returns the Sample with leading axis [FAKE_NUM]."""
     num = FAKE_NUM
     maps = jnp.zeros((1, H, H, len(FAKE_CFG.map_channels)))
     g, c = batch_inputs(FAKE_CFG, 1, given, caps)
+    options = SamplerOptions(heatmap_steps=FAKE_STEPS, location_temperature=location_temperature)
     out = sample_batch(scene_keys(jax.random.key(seed), 1, num), params, maps,
-                       broadcast(ego_of(FAKE_CFG), 1), g, c, cfg=FAKE_CFG,
-                       options=SamplerOptions(heatmap_steps=FAKE_STEPS),
+                       broadcast(ego_of(FAKE_CFG), 1), g, c, cfg=FAKE_CFG, options=options,
                        model=FakeModel(FAKE_CFG))
     return jax.tree.map(lambda x: np.asarray(x[0]), out)
 
@@ -399,6 +399,24 @@ def test_fake_model_ordering_mask_excludes_earlier_bins_and_no_bin_stops():
     np.testing.assert_array_equal(out.actors.valid.sum(-1), 1)
     np.testing.assert_array_equal(out.stop_reason, NO_BIN)
     assert np.all(np.isfinite(out.heatmaps))
+
+
+def test_location_temperature_divides_the_logits_before_the_masked_softmax():
+    # Step 1's logits: bin 100 (before step 0's bin 300: masked out), bins 400 and 500 above
+    # the 0 of the rest. The recorded distribution against numpy's softmax of logits / T
+    # over the allowed bins 300..N-1.
+    row = peaked((100, 9.0), (400, 3.0), (500, 2.0))
+    params = fake_params([VEHICLE, VEHICLE], [peaked((300, 30.0)), row])
+    for t in (0.5, 2.0):
+        out = run_fake(params, location_temperature=t)
+        z = row[300:] / t
+        want = np.zeros(N_BINS)
+        want[300:] = np.exp(z - z.max()) / np.exp(z - z.max()).sum()
+        np.testing.assert_allclose(out.heatmaps[:, 1], np.tile(want, (FAKE_NUM, 1)),
+                                   rtol=1e-4, atol=1e-7)
+    for bad in (0, -1.0, float("inf"), float("nan"), True, "1"):
+        with pytest.raises(ValueError, match="location_temperature"):
+            SamplerOptions(location_temperature=bad)
 
 
 def test_fake_model_boxes_are_one_draw():

@@ -4,6 +4,7 @@ with the merge of the processes' parts of an output."""
 
 from __future__ import annotations
 
+import argparse
 import os
 
 
@@ -19,23 +20,33 @@ def overrides(pairs: list[str]) -> dict[str, str]:
 
 
 def load_model(args):
-    """(config, parameters, training step) of `--pretrained NAME` or `--workdir` (`--step`)."""
+    """(config, parameters, training step, recommended sampler settings) of `--pretrained
+    NAME` or `--workdir` (`--step`); the settings are the pretrained manifest's "sampler"
+    entry ({} for a workdir)."""
     import jax
 
+    sampler = {}
     if args.pretrained:
         if args.step is not None:
             raise SystemExit("--step selects a checkpoint of --workdir; a pretrained model has one")
         from scenegen_jax.pretrained import load_pretrained
 
         cfg, params, manifest = load_pretrained(args.pretrained)
-        step = manifest["step"]
+        step, sampler = manifest["step"], manifest.get("sampler", {})
     else:
         from scenegen_jax.workdir import load_params
 
         cfg, params, step = load_params(args.workdir, args.step)
     # Uncommitted copies: restored arrays are committed to a device, and jit compiles a
     # separate executable for committed inputs.
-    return cfg, jax.device_put(jax.device_get(params)), step
+    return cfg, jax.device_put(jax.device_get(params)), step, sampler
+
+
+def location_temperature(args, sampler: dict) -> float:
+    """`--location-temperature`, else the model's recommended one, else 1 (the paper's)."""
+    if args.location_temperature is not None:
+        return args.location_temperature
+    return float(sampler.get("location_temperature", 1.0))
 
 
 def add_model_args(sp) -> None:
@@ -48,6 +59,29 @@ def add_model_args(sp) -> None:
         "written by `scenegen export-model`",
     )
     sp.add_argument("--step", type=int, help="checkpoint step of --workdir (default: the latest)")
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite number > 0."""
+    import math
+
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (value > 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"{text!r} must be a finite number > 0")
+    return value
+
+
+def add_temperature_arg(sp) -> None:
+    """`--location-temperature T` of the commands that sample."""
+    sp.add_argument(
+        "--location-temperature", type=positive_float, metavar="T",
+        help="divide the location logits by T before sampling a bin (beyond the paper, whose "
+        "sampler is T = 1; below 1 favours the model's likelier bins). Default: the one a "
+        "pretrained model recommends (its manifest's sampler entry), else 1",
+    )
 
 
 def add_distributed_args(sp, what: str) -> None:

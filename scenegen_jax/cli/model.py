@@ -5,7 +5,12 @@ from __future__ import annotations
 
 import json
 
-from scenegen_jax.cli.common import add_distributed_args, overrides, start_distributed
+from scenegen_jax.cli.common import (
+    add_distributed_args,
+    overrides,
+    positive_float,
+    start_distributed,
+)
 from scenegen_jax.config import PRESETS, get_config
 
 
@@ -36,7 +41,9 @@ def cmd_export_model(args) -> None:
     from scenegen_jax.workdir import load_params
 
     cfg, params, step = load_params(args.workdir, args.step)
-    manifest = save_pretrained(args.out, cfg, params, step, args.workdir)
+    sampler = ({} if args.location_temperature is None
+               else {"location_temperature": args.location_temperature})
+    manifest = save_pretrained(args.out, cfg, params, step, args.workdir, sampler)
     print(json.dumps({"out": args.out, **manifest}))
 
 
@@ -45,8 +52,10 @@ def cmd_models(args) -> None:
 
     for name in available():
         cfg, _, manifest = load_pretrained(name)
+        sampler = "".join(f", {k.replace('_', ' ')} {v}"
+                          for k, v in manifest.get("sampler", {}).items())
         print(f"{name}\tconfig {cfg.name}, grid {cfg.grid_size}, step {manifest['step']}, "
-              f"{manifest['parameters']} parameters")
+              f"{manifest['parameters']} parameters{sampler}")
 
 
 def add_parsers(sub) -> None:
@@ -80,6 +89,9 @@ def add_parsers(sub) -> None:
     sp.add_argument("--workdir", required=True)
     sp.add_argument("--step", type=int, help="checkpoint step (default: the latest)")
     sp.add_argument("--out", required=True, help="directory (config, parameters, manifest)")
+    sp.add_argument("--location-temperature", type=positive_float, metavar="T",
+                    help="the location temperature `sample` and `evaluate` use with this model "
+                    "unless told otherwise (recorded in the manifest; default: none, i.e. 1)")
     sp.set_defaults(func=cmd_export_model)
 
     sp = sub.add_parser("models", help="list the pretrained models shipped with the package")

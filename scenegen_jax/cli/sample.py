@@ -11,7 +11,9 @@ from tqdm import tqdm
 from scenegen_jax.cli.common import (
     add_distributed_args,
     add_model_args,
+    add_temperature_arg,
     load_model,
+    location_temperature,
     start_distributed,
 )
 from scenegen_jax.config import Config
@@ -92,7 +94,7 @@ def cmd_sample(args) -> None:
     if args.proposals is not None and args.proposals < 1:
         raise SystemExit("--proposals must be >= 1")
     start_distributed(args)
-    cfg, params, _ = load_model(args)
+    cfg, params, _, sampler = load_model(args)
     cache = load_cache(args.data)
     cache.check_config(cfg)
     indices, given = conditioning(args, cfg, cache)
@@ -100,7 +102,8 @@ def cmd_sample(args) -> None:
     out = os.path.abspath(args.out)
     for sub_dir in ("png", "scenarionet") + (("heatmaps",) if steps else ()):
         os.makedirs(os.path.join(out, sub_dir), exist_ok=True)
-    options = SamplerOptions(proposals=args.proposals, heatmap_steps=steps)
+    options = SamplerOptions(proposals=args.proposals, heatmap_steps=steps,
+                             location_temperature=location_temperature(args, sampler))
     share, parts = process_share(args.num), jax.process_count()
     scenes = sample_on_cache(params, cfg, cache, args.num, args.seed, indices=indices,
                              given=given, caps=parse_caps(args.cap, cfg),
@@ -164,6 +167,7 @@ def add_parsers(sub) -> None:
     sp.add_argument("--proposals", type=int, help="best-of-M proposals of the heading and velocity "
                     "(default: the config's)")
     sp.add_argument("--seed", type=int, default=0)
+    add_temperature_arg(sp)
     sp.add_argument(
         "--given",
         help="JSON lines of actors to condition on (scenes.jsonl format); "

@@ -9,7 +9,9 @@ import sys
 from scenegen_jax.cli.common import (
     add_distributed_args,
     add_model_args,
+    add_temperature_arg,
     load_model,
+    location_temperature,
     merge_parts,
     start_distributed,
 )
@@ -35,7 +37,7 @@ def cmd_score(args) -> None:
     if args.batch_size < 1:
         raise SystemExit(f"--batch-size must be >= 1, got {args.batch_size}")
     start_distributed(args)
-    cfg, params, _ = load_model(args)
+    cfg, params, _, _ = load_model(args)
     cache = load_union(args.data, cfg)  # every --data cache, its scenes one after another
     share = process_share(len(cache))  # with several processes: its share of the scenes
     if not share:
@@ -120,13 +122,15 @@ def _render_worst(scores, cache, cfg, k: int, out_dir: str) -> list[str]:
 def cmd_evaluate(args) -> None:
     from scenegen_jax.data.union import load_union
     from scenegen_jax.eval.evaluate import evaluate, format_table
+    from scenegen_jax.sampling import SamplerOptions
 
     if args.num < 1:
         raise SystemExit(f"--num must be >= 1, got {args.num}")
-    cfg, params, step = load_model(args)
+    cfg, params, step, sampler = load_model(args)
     cache = load_union(args.data, cfg)
     train_cache = load_union(args.train_data, cfg)
-    report = evaluate(params, cfg, cache, train_cache, args.num, args.seed)
+    options = SamplerOptions(location_temperature=location_temperature(args, sampler))
+    report = evaluate(params, cfg, cache, train_cache, args.num, args.seed, options)
     report["step"] = step
     report["command"] = " ".join(["scenegen", *sys.argv[1:]])
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
@@ -177,6 +181,7 @@ def add_parsers(sub) -> None:
                     help="training caches (Procedural's KDE)")
     sp.add_argument("--num", type=int, default=64, help="conditioning scenes for MMD")
     sp.add_argument("--seed", type=int, default=0)
+    add_temperature_arg(sp)
     sp.add_argument("--out", required=True, help="report JSON")
     sp.set_defaults(func=cmd_evaluate)
 

@@ -20,6 +20,7 @@ from scenegen_jax.eval.nll import score_cache, summarize_by_source, summarize_sc
 from scenegen_jax.eval.realism import realism_stats
 from scenegen_jax.raster.transform import scene_from_cached
 from scenegen_jax.sampling.batch import sample_scenes
+from scenegen_jax.sampling.rollout import DEFAULT_OPTIONS, SamplerOptions
 
 log = logging.getLogger(__name__)
 METHODS = ("Prob. Grammar", "Procedural", "SceneGen")
@@ -37,7 +38,8 @@ def real_scenes(cache: Cache, indices, cfg: Config):
     return np.stack(maps), scenes
 
 
-def sample_scenegen(params, cfg: Config, maps, scenes, seed: int, batch_size: int = 8):
+def sample_scenegen(params, cfg: Config, maps, scenes, seed: int, batch_size: int = 8,
+                    options: SamplerOptions = DEFAULT_OPTIONS):
     """One SceneGen sample per conditioning scene (numpy Actors each); scene i is scene i of
     the request (`sampling.scene_key`), whatever the batch size."""
     key = jax.random.key(seed)
@@ -47,7 +49,7 @@ def sample_scenegen(params, cfg: Config, maps, scenes, seed: int, batch_size: in
         chunk = scenes[start : start + batch_size]
         egos = jax.tree.map(lambda *x: np.stack(x), *[s.ego for s in chunk])
         sample = sample_scenes(key, params, cfg, maps[start : start + batch_size], egos,
-                               first=start)
+                               first=start, options=options)
         actors = jax.device_get(sample.actors)
         out.extend(jax.tree.map(lambda x, j=j: x[j, 0], actors) for j in range(len(chunk)))
     return out
@@ -84,18 +86,19 @@ def sample_baselines(cfg: Config, cache: Cache, indices, train_cache: Cache, see
     }
 
 
-def evaluate(params, cfg: Config, cache: Cache, train_cache: Cache, num_scenes: int, seed: int):
+def evaluate(params, cfg: Config, cache: Cache, train_cache: Cache, num_scenes: int, seed: int,
+             options: SamplerOptions = DEFAULT_OPTIONS):
     """NLL of every cached scene (overall and per source), and MMD rows and realism figures
     (`realism.realism_stats`) for every method and the real scenes on `num_scenes` scenes
-    spread evenly over all of them. `cache` may be a `data.union.CacheUnion` of several
-    caches (sources)."""
+    spread evenly over all of them; SceneGen samples with `options`. `cache` may be a
+    `data.union.CacheUnion` of several caches (sources)."""
     scores = score_cache(params, cache, cfg)
     nll = summarize_scores(scores)
     nll_by_source = summarize_by_source(scores, cache)
     indices = np.linspace(0, len(cache) - 1, min(num_scenes, len(cache))).astype(int)
     maps, scenes = real_scenes(cache, indices, cfg)
     generated = sample_baselines(cfg, cache, indices, train_cache, seed)
-    generated["SceneGen"] = sample_scenegen(params, cfg, maps, scenes, seed)
+    generated["SceneGen"] = sample_scenegen(params, cfg, maps, scenes, seed, options=options)
     real = [s.actors for s in scenes]
     mmd = {m: mmd_table(real, generated[m], region_m=cfg.region_m) for m in METHODS}
     canvases = [np.asarray(cached_scene(cache, int(i), cfg)[0]) for i in indices]

@@ -6,7 +6,10 @@ A pretrained model is a directory holding exactly three files:
   params.msgpack  its parameters, serialised by `flax.serialization` (msgpack: plain arrays,
                   loading runs no code from the file)
   manifest.json   {"sha256": of params.msgpack, "parameters": count, "step": training step,
-                   "source": the workdir it was exported from}
+                   "source": the workdir it was exported from, and optionally "sampler":
+                   the `SamplerOptions` fields its figures were measured with, which
+                   `scenegen sample` and `evaluate` use unless told otherwise, e.g.
+                   {"location_temperature": 0.7}}
 
 and a human-readable `MODEL_CARD.md` beside them. `load_pretrained(name)` finds `name` among
 the directories of this package (`available()`), or takes a path to such a directory,
@@ -63,9 +66,28 @@ def _sha256(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
 
-def save_pretrained(directory: str, cfg: Config, params, step: int, source: str) -> dict:
-    """Writes `params` of a model of config `cfg` as a pretrained model directory; returns
-    the manifest. Overwrites the three files of an existing one."""
+# The manifest's "sampler" fields (`SamplerOptions` fields a model may recommend).
+SAMPLER_FIELDS = ("location_temperature",)
+
+
+def check_sampler(sampler, where: str) -> dict:
+    """`sampler` if it is a manifest's valid "sampler" entry, else a ValueError naming
+    `where` (the file) and the field."""
+    if not isinstance(sampler, dict):
+        raise ValueError(f"{where}: field sampler must be an object, got {sampler!r}")
+    for k, v in sampler.items():
+        if k not in SAMPLER_FIELDS:
+            raise ValueError(f"{where}: field sampler.{k} is not one of {SAMPLER_FIELDS}")
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < float("inf"):
+            raise ValueError(f"{where}: field sampler.{k} must be a number > 0, got {v!r}")
+    return sampler
+
+
+def save_pretrained(directory: str, cfg: Config, params, step: int, source: str,
+                    sampler: dict | None = None) -> dict:
+    """Writes `params` of a model of config `cfg` as a pretrained model directory, with the
+    sampler settings it recommends (`sampler`, optional); returns the manifest. Overwrites
+    the three files of an existing one."""
     params = jax.device_get(params)
     data = serialization.to_bytes(params)
     manifest = {
@@ -74,6 +96,8 @@ def save_pretrained(directory: str, cfg: Config, params, step: int, source: str)
         "step": int(step),
         "source": source,
     }
+    if sampler:
+        manifest["sampler"] = check_sampler(dict(sampler), "sampler")
     os.makedirs(directory, exist_ok=True)
     with open(os.path.join(directory, CONFIG_FILE), "w") as f:
         f.write(cfg.to_json() + "\n")
@@ -102,6 +126,7 @@ def load_pretrained(name_or_dir: str) -> tuple[Config, dict, dict]:
             cfg = Config.from_json(f.read(), paths[CONFIG_FILE])
     except json.JSONDecodeError as e:
         raise ValueError(f"{paths[MANIFEST_FILE]}: not valid JSON ({e})") from e
+    check_sampler(manifest.get("sampler", {}), paths[MANIFEST_FILE])
     with open(paths[PARAMS_FILE], "rb") as f:
         data = f.read()
     if _sha256(data) != manifest.get("sha256"):

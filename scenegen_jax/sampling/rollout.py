@@ -101,6 +101,9 @@ class SamplerOptions:
     heatmap_steps: steps whose location distribution is recorded.
     parallel: scenes vmapped together by `sample_batch`; None: `backend.default_parallel()`
       (1 on CPU, all on accelerators).
+    location_temperature: the location logits are divided by it before the ordering mask
+      and the softmax (beyond the paper, whose sampler is 1.0, the default): below 1 the
+      draw favours the model's likelier bins.
     """
 
     proposals: int | None = None
@@ -108,12 +111,17 @@ class SamplerOptions:
     rounds: int = DEFAULT_ROUNDS
     heatmap_steps: tuple[int, ...] = ()
     parallel: int | None = None
+    location_temperature: float = 1.0
 
     def __post_init__(self):
         for name in ("proposals", "candidates", "rounds", "parallel"):
             v = getattr(self, name)
             if v is not None and (not isinstance(v, int) or v < 1):
                 raise ValueError(f"sampler option {name} must be an integer >= 1, got {v!r}")
+        t = self.location_temperature
+        if isinstance(t, bool) or not isinstance(t, (int, float)) or not 0 < t < float("inf"):
+            raise ValueError(f"sampler option location_temperature must be a number > 0, "
+                             f"got {t!r}")
 
 
 DEFAULT_OPTIONS = SamplerOptions()
@@ -339,6 +347,8 @@ def rollout(
         safe_cls = jnp.where(is_stop, 0, cls)
 
         loc = model.location_logits(params, f, safe_cls[None])[0]
+        if options.location_temperature != 1.0:
+            loc = loc / options.location_temperature
         log_probs, _ = masked_log_softmax(loc, ordering_mask(state.prev_bin, n_bins))
         # Bins allowed by the mask but with -inf logits give NaN in the softmax; drop them.
         log_probs = jnp.where(jnp.isnan(log_probs), -jnp.inf, log_probs)
