@@ -96,15 +96,51 @@ def init_compiler_options() -> dict | None:
     return _backend_level(0) if on_cpu() else None
 
 
+# YNNPACK keeps dots and reductions, and the convolutions go to XLA's Eigen path.
+EIGEN_CONVOLUTIONS = {
+    "xla_cpu_experimental_ynn_fusion_type": (
+        "LIBRARY_FUSION_TYPE_INDIVIDUAL_DOT,LIBRARY_FUSION_TYPE_REDUCE"
+    ),
+}
+
+
+def cpu_vendor() -> str:
+    """The host CPU's vendor id from /proc/cpuinfo ('GenuineIntel', 'AuthenticAMD'), or ''
+    where it cannot be read."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("vendor_id"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return ""
+
+
+def train_eigen_convolutions() -> bool:
+    """Whether the train step's convolutions run through XLA's Eigen path (else YNNPACK's):
+    on Intel CPUs. The weight gradients decide it, and they go opposite ways on the two
+    vendors we measure on. Intel Xeon with AVX-512 and AMX, 2 cores (session 24): 5 x 5,
+    64 -> 128 at 128 x 128, forward + weight gradient 84 ms through Eigen against 136 through
+    YNNPACK; the `paper` step 7.41 -> 6.58 s at grid 128, T 25 and 8.75 -> 5.56 s at grid 320,
+    T 5. AMD EPYC Zen 4 (session 11): Eigen's weight gradients 2-4x slower than YNNPACK's
+    (76 against 35.5 ms for 5 x 5, 32 -> 128). Not measured on AVX2-only CPUs (Zen 3: AMD,
+    so YNNPACK). bench/README.md."""
+    return on_cpu() and cpu_vendor() == "GenuineIntel"
+
+
 def train_compiler_options() -> dict | None:
     """XLA compiler options for the train step: `FAST_COMPILE` and backend optimisation level
-    1 on XLA:CPU, None (XLA's defaults) on other backends. Level 1 against the default 2, one
-    Zen 4 core, the other busy: compile 44-45 -> 39-41 s (`tiny`), 47 -> 43 s (`cpu`), 43 ->
-    38 s (`paper` at grid 128, T 25), steps as fast (fastest of 7: 1.89-1.90 against
-    1.88-1.89 s at `tiny`; medians 5.8 against 6.3 s at `cpu`, 10.9 against 10.8 s at
-    `paper`); level 0 compiled faster still but ran `tiny`'s step 1.7x slower
-    (bench/README.md)."""
-    return {**FAST_COMPILE, **_backend_level(1)} if on_cpu() else None
+    1 on XLA:CPU, with `EIGEN_CONVOLUTIONS` where `train_eigen_convolutions`; None (XLA's
+    defaults) on other backends. Level 1 against the default 2, one Zen 4 core, the other
+    busy: compile 44-45 -> 39-41 s (`tiny`), 47 -> 43 s (`cpu`), 43 -> 38 s (`paper` at grid
+    128, T 25), steps as fast (fastest of 7: 1.89-1.90 against 1.88-1.89 s at `tiny`; medians
+    5.8 against 6.3 s at `cpu`, 10.9 against 10.8 s at `paper`); level 0 compiled faster
+    still but ran `tiny`'s step 1.7x slower (bench/README.md)."""
+    if not on_cpu():
+        return None
+    eigen = EIGEN_CONVOLUTIONS if train_eigen_convolutions() else {}
+    return {**FAST_COMPILE, **_backend_level(1), **eigen}
 
 
 def sampling_compiler_options() -> dict | None:
@@ -124,18 +160,14 @@ def scoring_compiler_options() -> dict | None:
     On XLA:CPU its convolutions then run through XLA's Eigen path instead of YNNPACK: the
     backbone's 3 x 3, 32 -> 32 convolution takes 1.7 ms there at 128 x 128 against 3.0 ms,
     the 5 x 5 ones the same; YNNPACK keeps what it runs by default besides convolutions (dots
-    and reductions). The train step keeps YNNPACK's convolutions, whose weight gradients are
-    2-4x faster than Eigen's, and so does the sampler, which ran 7 % slower with Eigen's
-    (bench/README.md). None (XLA's defaults) on other backends.
+    and reductions). The train step keeps YNNPACK's convolutions on AMD CPUs, whose weight
+    gradients are 2-4x faster than Eigen's there (`train_eigen_convolutions`), and so does the
+    sampler, which ran 7 % slower with Eigen's on a Zen 4 (bench/README.md). None (XLA's
+    defaults) on other backends.
     """
     if not on_cpu():
         return None
-    return {
-        **FAST_COMPILE,
-        "xla_cpu_experimental_ynn_fusion_type": (
-            "LIBRARY_FUSION_TYPE_INDIVIDUAL_DOT,LIBRARY_FUSION_TYPE_REDUCE"
-        ),
-    }
+    return {**FAST_COMPILE, **EIGEN_CONVOLUTIONS}
 
 
 def start_distributed(
