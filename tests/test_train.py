@@ -157,7 +157,10 @@ def test_overfit_two_real_scenes(tiny_train_cache, small_scenes):
     state = init_state(CFG)
     step = make_train_step(CFG)
     losses = []
-    for _ in range(60):
+    # 80 steps: at 60 the loss was at 0.44 of its start through YNNPACK's convolutions and
+    # 0.504 through Eigen's (the train step's on Intel CPUs), a plateau both leave by step 80
+    # (0.39 either way; session 24).
+    for _ in range(80):
         state, stats = step(state, batch)
         losses.append(float(stats["loss"]))
     assert np.all(np.isfinite(losses))
