@@ -15,8 +15,8 @@
 #   used when experiments/pretrained_run has no checkpoint yet)
 # NOMAP=1 experiments/pretrained_run.sh ... trains the same recipe without map layers (and so
 # without attribute_map_input and attribute_map_skip), from scratch, in experiments/nomap_run/:
-# the model the shipped one is compared with by `scenegen compare` once it has as many steps
-# (issue 21).
+# the model the shipped one is compared with by `scenegen compare` at as many steps (4,142,
+# reached in session 24: experiments/results/README.md; issue 21).
 # Usage: [NOMAP=1] experiments/pretrained_run.sh [STEPS] [CORE] [MINUTES]
 set -euo pipefail
 cd "$(dirname "$0")/.."
