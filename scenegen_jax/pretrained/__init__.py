@@ -30,6 +30,7 @@ from flax.traverse_util import flatten_dict
 
 from scenegen_jax.config import Config
 from scenegen_jax.model.network import init_params
+from scenegen_jax.sampling.rollout import SamplerOptions
 
 PACKAGE_DIR = os.path.dirname(os.path.abspath(__file__))
 CONFIG_FILE = "config.json"
@@ -78,8 +79,10 @@ def check_sampler(sampler, where: str) -> dict:
     for k, v in sampler.items():
         if k not in SAMPLER_FIELDS:
             raise ValueError(f"{where}: field sampler.{k} is not one of {SAMPLER_FIELDS}")
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < float("inf"):
-            raise ValueError(f"{where}: field sampler.{k} must be a number > 0, got {v!r}")
+        try:
+            SamplerOptions(**{k: v})
+        except ValueError as e:
+            raise ValueError(f"{where}: field sampler.{k}: {e}") from None
     return sampler
 
 
