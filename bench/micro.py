@@ -7,8 +7,8 @@ paper's width (hidden 32) and grid 128, B 1, on XLA:CPU. Run alone on an idle ma
   the same statistics reduced over the grouped 5-D view (the code before session 11);
 - convolutions 3x3 32 -> 32 and 5x5 32 -> 128: forward, input gradient and weight gradient,
   with XLA's default (YNNPACK) and with `scoring_compiler_options()` (Eigen);
-- the 5x5 32 -> 128 weight gradient at grids 128 and 320: XLA's, and summed over bands of
-  `WEIGHT_GRADIENT_BAND_ROWS` rows as `conv` does above `BANDED_ABOVE_ROWS` (session 23).
+- the 5x5 32 -> 128 weight gradient at grids 128 and 320: XLA's, and summed over row bands
+  of the size `conv` uses on this CPU (`backend.weight_gradient_bands`; sessions 23-24).
 """
 
 from __future__ import annotations
@@ -19,9 +19,8 @@ import time
 import jax
 import jax.numpy as jnp
 
-from scenegen_jax.backend import scoring_compiler_options
+from scenegen_jax.backend import scoring_compiler_options, weight_gradient_bands
 from scenegen_jax.model.network import (
-    WEIGHT_GRADIENT_BAND_ROWS,
     _banded_conv,
     _conv,
     conv,
@@ -79,10 +78,14 @@ def main() -> None:
     for grid in (128, 320):
         xg = jax.random.normal(keys[0], (1, grid, grid, HIDDEN))
         g = jax.random.normal(keys[3], (1, grid, grid, 4 * HIDDEN))
+        band_rows = (weight_gradient_bands() or (0, grid))[1]
+        def banded_conv(x, v, band_rows=band_rows):
+            return _banded_conv(x, v, band_rows)
+
         xla, banded = (median_ms(lambda x, g, f=f: jax.vjp(lambda v: f(x, v), w)[1](g)[0], xg, g,
-                                 runs=5) for f in (_conv, _banded_conv))
+                                 runs=5) for f in (_conv, banded_conv))
         print(f"conv 5x5 {HIDDEN} -> {4 * HIDDEN} at {grid} x {grid}, weight gradient: XLA "
-              f"{xla:.1f} ms, in bands of {WEIGHT_GRADIENT_BAND_ROWS} rows {banded:.1f} ms")
+              f"{xla:.1f} ms, in bands of {band_rows} rows {banded:.1f} ms")
 
 
 if __name__ == "__main__":

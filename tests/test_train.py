@@ -18,8 +18,6 @@ from small import CFG, random_params, train_cmd, two_small_scenes, with_xla_flag
 from scenegen_jax.likelihood.batch import Batch, check_batch, crop_batch, gather_batch
 from scenegen_jax.likelihood.unroll import unroll_terms
 from scenegen_jax.model.network import (
-    BANDED_ABOVE_ROWS,
-    WEIGHT_GRADIENT_BAND_ROWS,
     SceneGenNet,
     conv,
     group_norm,
@@ -98,27 +96,37 @@ def test_warmup_ramps_adams_step_linearly():
         np.testing.assert_allclose(updates["w"], -lr * np.sign(g["w"]), rtol=1e-4, atol=1e-9)
 
 
-def test_banded_weight_gradient_equals_the_convolutions_own():
-    """Over more than BANDED_ABOVE_ROWS rows a convolution's weight gradient is summed over
-    row bands (with the kernel's halo): values and both gradients as XLA's own convolution's,
-    for kernels 5, 3 and 1 and a row count the bands do not divide."""
-    rows = BANDED_ABOVE_ROWS + 3
-    assert rows > 2 * WEIGHT_GRADIENT_BAND_ROWS  # three bands
+def test_banded_weight_gradient_equals_the_convolutions_own(monkeypatch):
+    """A convolution whose weight gradient is summed over row bands (with the kernel's halo):
+    values and both gradients as XLA's own convolution's, for kernels 5, 3 and 1 and a row
+    count the bands do not divide; `conv` bands exactly above the backend's threshold."""
+    from scenegen_jax.model import network
+
+    rows, band_rows = 11, 4  # three bands: 3, 4, 4 rows
+    assert network._band_starts(rows, band_rows) == [0, 3, 7, 11]
     kx, kg = jax.random.split(jax.random.key(9))
     x = jax.random.normal(kx, (2, rows, 7, 3))
+
+    def xla(x, w):
+        return jax.lax.conv_general_dilated(x, w, (1, 1), "SAME",
+                                            dimension_numbers=("NHWC", "HWIO", "NHWC"))
+
     for k, kw in zip((5, 3, 1), jax.random.split(jax.random.key(10), 3), strict=True):
         w = jax.random.normal(kw, (k, k, 3, 4))
         g = jax.random.normal(kg, (2, rows, 7, 4))
-
-        def xla(x, w):
-            return jax.lax.conv_general_dilated(x, w, (1, 1), "SAME",
-                                                dimension_numbers=("NHWC", "HWIO", "NHWC"))
-
-        ours, vjp_ours = jax.vjp(conv, x, w)
+        ours, vjp_ours = jax.vjp(lambda x, w: network._banded_conv(x, w, band_rows), x, w)
         theirs, vjp_theirs = jax.vjp(xla, x, w)
         np.testing.assert_array_equal(ours, theirs)
         for a, b in zip(vjp_ours(g), vjp_theirs(g), strict=True):
             np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-4)
+    calls = []
+    monkeypatch.setattr(network, "weight_gradient_bands", lambda: (10, band_rows))
+    monkeypatch.setattr(network, "_banded_conv", lambda x, w, r: calls.append(r) or xla(x, w))
+    w = jnp.ones((3, 3, 3, 4))
+    conv(x[:, :10], w)
+    assert calls == []  # 10 rows: not above the threshold
+    conv(x, w)
+    assert calls == [band_rows]
 
 
 def test_group_norm_matches_flax():

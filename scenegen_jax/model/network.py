@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import errors
 
-from scenegen_jax.backend import band_weight_gradients, init_compiler_options
+from scenegen_jax.backend import init_compiler_options, weight_gradient_bands
 from scenegen_jax.config import Config
 from scenegen_jax.raster.actors import ACTOR_CHANNELS, window_origin, window_size
 from scenegen_jax.raster.map import ORIENTATION_CHANNELS
@@ -46,46 +46,37 @@ def orientation_sectors(cos, sin, k: int):
     return jnp.hypot(cos, sin)[..., None] * jnp.maximum(0.0, 1.0 - d)
 
 
-# Weight gradients of convolutions over more than BANDED_ABOVE_ROWS rows are summed over bands
-# of at most WEIGHT_GRADIENT_BAND_ROWS rows (`_banded_conv`). XLA:CPU's (YNNPACK's) weight
-# gradient of a 5 x 5, 32 -> 128 convolution, one Zen 4 core: 857 ms at 320 x 320 (25
-# GFLOP/s), 240 ms in bands of 64 rows; at 128 x 128 37 against 34 ms, but the `paper` train
-# step at grid 128 compiled 12 s longer and ran 4 % slower on 2 cores, so it is not banded
-# (bench/README.md, session 23).
-BANDED_ABOVE_ROWS = 128
-WEIGHT_GRADIENT_BAND_ROWS = 64
-
-
 def _conv(x, w, padding="SAME"):
     return jax.lax.conv_general_dilated(
         x, w, (1, 1), padding, dimension_numbers=("NHWC", "HWIO", "NHWC")
     )
 
 
-def _band_starts(rows: int) -> list[int]:
-    """First rows of `ceil(rows / WEIGHT_GRADIENT_BAND_ROWS)` bands whose sizes differ by at
-    most one row, then `rows`."""
-    n = -(-rows // WEIGHT_GRADIENT_BAND_ROWS)
+def _band_starts(rows: int, band_rows: int) -> list[int]:
+    """First rows of `ceil(rows / band_rows)` bands whose sizes differ by at most one row,
+    then `rows`."""
+    n = -(-rows // band_rows)
     return [i * rows // n for i in range(n)] + [rows]
 
 
-@jax.custom_vjp
-def _banded_conv(x, w):
-    """`_conv(x, w)` whose weight gradient is a sum over row bands of the input."""
+@functools.partial(jax.custom_vjp, nondiff_argnums=(2,))
+def _banded_conv(x, w, band_rows: int):
+    """`_conv(x, w)` whose weight gradient is a sum over bands of at most `band_rows` rows of
+    the input (each with the kernel's halo)."""
     return _conv(x, w)
 
 
-def _banded_conv_fwd(x, w):
+def _banded_conv_fwd(x, w, band_rows):
     return _conv(x, w), (x, w)
 
 
-def _banded_conv_bwd(res, g):
+def _banded_conv_bwd(band_rows, res, g):
     x, w = res
     dx = jax.vjp(lambda x: _conv(x, w), x)[1](g)[0]
     kh, kw = w.shape[:2]
     pad = [(0, 0), ((kh - 1) // 2, kh // 2), ((kw - 1) // 2, kw // 2), (0, 0)]  # as 'SAME'
     xp = jnp.pad(x, pad)
-    starts = _band_starts(x.shape[1])
+    starts = _band_starts(x.shape[1], band_rows)
     dw = jnp.zeros_like(w)
     for lo, hi in zip(starts[:-1], starts[1:], strict=True):
         band = jax.lax.slice_in_dim(xp, lo, hi + kh - 1, axis=1)  # the band and its halo
@@ -98,11 +89,12 @@ _banded_conv.defvjp(_banded_conv_fwd, _banded_conv_bwd)
 
 
 def conv(x, w, b=None):
-    """'SAME' stride-1 convolution, x [B, H, W, Ci], w [kh, kw, Ci, Co]. Over more than
-    `BANDED_ABOVE_ROWS` rows and where the backend wants it (`backend.band_weight_gradients`),
-    its weight gradient is summed over row bands."""
-    banded = x.shape[1] > BANDED_ABOVE_ROWS and band_weight_gradients()
-    y = _banded_conv(x, w) if banded else _conv(x, w)
+    """'SAME' stride-1 convolution, x [B, H, W, Ci], w [kh, kw, Ci, Co]. Where the backend
+    bands weight gradients (`backend.weight_gradient_bands`) and x has more rows than its
+    threshold, the weight gradient is summed over row bands."""
+    bands = weight_gradient_bands()
+    banded = bands is not None and x.shape[1] > bands[0]
+    y = _banded_conv(x, w, bands[1]) if banded else _conv(x, w)
     return y if b is None else y + b
 
 
