@@ -7,6 +7,10 @@ scorer and the sampler, how many calls run at once and how many scenes are vmapp
 the device mesh, and returning the compiler's freed host memory. Also where a multi-process
 job starts and which process writes.
 
+What differs between CPUs, read once from /proc/cpuinfo (`cpu_vendor`): which library runs
+the train step's convolutions and the row bands of their weight gradients (Intel: Eigen,
+32-row bands; AMD: YNNPACK, 64-row bands above 128 rows), both measured (bench/README.md).
+
 Concurrent calls: XLA:CPU runs calls made from different host threads side by side. One call
 at a time leaves a core idle whenever the program runs a small serial operation between its
 multi-threaded convolutions; concurrent calls on parts of a batch fill the cores (on 2 cores:
@@ -18,6 +22,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import ctypes
+import functools
 import os
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any
@@ -115,9 +120,10 @@ EIGEN_CONVOLUTIONS = {
 }
 
 
+@functools.cache
 def cpu_vendor() -> str:
     """The host CPU's vendor id from /proc/cpuinfo ('GenuineIntel', 'AuthenticAMD'), or ''
-    where it cannot be read."""
+    where it cannot be read; read once (every convolution asks while it is traced)."""
     try:
         with open("/proc/cpuinfo") as f:
             for line in f:
