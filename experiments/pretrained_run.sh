@@ -5,14 +5,19 @@
 # metrics.jsonl and the newest checkpoint only), pinned to one core so the other stays free.
 # The `cpu` preset (separate attribute MLPs since session 18) with pixel coordinates, the
 # canonical order's channel, the map at the actor's bin as an attribute input (first and last
-# layer), and a 50-step warm-up. It is the fifth phase of the model's training
-# (MODEL_CARD.md): session 20 started it from the fourth phase's step 830 (the same without
-# attribute_map_skip; metrics experiments/results/pretrained_run_mapattr_metrics.jsonl),
+# layer), and a 50-step warm-up. It is the sixth phase of the model's training
+# (MODEL_CARD.md): session 25 started it from the fifth phase's step 425, the shipped model
+# (`INIT_FROM=cpu-av2-womd`; the fifth phase went on to step 742 at a constant learning rate
+# and got worse on Argoverse 2 val, experiments/results/pretrained_run_skip_metrics.jsonl),
+# with a cosine decay of the learning rate to 0 over 900 steps after the warm-up, and a new
+# seed (a new order of the scenes and rotations). Session 20 started the fifth phase from
+# the fourth phase's step 830 (the same without attribute_map_skip; metrics
+# experiments/results/pretrained_run_mapattr_metrics.jsonl),
 # itself started from the third's step 350 (pretrained_run_order_metrics.jsonl), started from
 # the second (pretrained_run_split_metrics.jsonl), started from the first
 # (pretrained_run_shared_metrics.jsonl). A new phase starts with:
-#   INIT_FROM=DIR experiments/pretrained_run.sh   (DIR: the previous phase's workdir; only
-#   used when experiments/pretrained_run has no checkpoint yet)
+#   INIT_FROM=DIR experiments/pretrained_run.sh   (DIR: the previous phase's workdir or a
+#   pretrained model; only used when experiments/pretrained_run has no checkpoint yet)
 # NOMAP=1 experiments/pretrained_run.sh ... trains the same recipe without map layers (and so
 # without attribute_map_input and attribute_map_skip), from scratch, in experiments/nomap_run/:
 # the model the shipped one is compared with by `scenegen compare` at as many steps (4,142,
@@ -35,7 +40,8 @@ prep scenarionet "$SHARED/womd_mini/scenarionet" train runs/cache_cpu_womdpkl_tr
 if [ -n "${NOMAP:-}" ]; then
     WORKDIR=experiments/nomap_run INPUTS="map_layers=none"
 else
-    WORKDIR=experiments/pretrained_run INPUTS="attribute_map_input=true attribute_map_skip=true"
+    WORKDIR=experiments/pretrained_run
+    INPUTS="attribute_map_input=true attribute_map_skip=true decay_steps=900 seed=6"
 fi
 XLA_FLAGS=--xla_cpu_multi_thread_eigen=false taskset -c "$CORE" $BIN/scenegen train \
     --config cpu --set coord_channels=true order_channel=true $INPUTS \

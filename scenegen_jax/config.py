@@ -31,7 +31,7 @@ ALL_LAYER_GROUPS: tuple[str, ...] = ("lanes", "drivable", "crosswalks")
 
 # Fields that only training reads (the scorer and the sampler see `Config.inference()`).
 TRAINING_ONLY = ("name", "hard_negatives", "batch_size", "learning_rate", "warmup_steps",
-                 "grad_clip", "rotate_augment", "map_dropout", "remat", "seed")
+                 "decay_steps", "grad_clip", "rotate_augment", "map_dropout", "remat", "seed")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,6 +64,10 @@ class Config:
         paper; 0 disables). Adam's first steps move every weight by about the full step size
         whatever its gradient; the ramp keeps them from silencing backbone channels
         (experiments/results/README.md, session 14).
+      decay_steps: after the warm-up, steps of a cosine decay of the learning rate from
+        `learning_rate` to 0, then 0 (beyond the paper; 0 keeps it constant). The shipped
+        model's last phase decays the noise of constant-rate Adam at batch 4
+        (scenegen_jax/pretrained/cpu-av2-womd/MODEL_CARD.md).
       grad_clip: global-norm clip (0 disables).
       proposals: M, best-of-M draws of the heading and velocity when sampling (the box size
         and the position are one draw each; `sampling.rollout`).
@@ -126,6 +130,7 @@ class Config:
     batch_size: int = 4
     learning_rate: float = 1e-3
     warmup_steps: int = 0
+    decay_steps: int = 0
     grad_clip: float = 1.0
     proposals: int = 10
     zero_speed: float = 0.2
@@ -258,9 +263,10 @@ def config_problems(cfg: Config) -> list[str]:
         v = getattr(cfg, name)
         if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
             out.append(f"{name}: must be a finite number > 0, got {v!r}")
-    if isinstance(cfg.warmup_steps, bool) or not isinstance(cfg.warmup_steps, int) \
-            or cfg.warmup_steps < 0:
-        out.append(f"warmup_steps: must be an integer >= 0, got {cfg.warmup_steps!r}")
+    for name in ("warmup_steps", "decay_steps"):
+        value = getattr(cfg, name)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            out.append(f"{name}: must be an integer >= 0, got {value!r}")
     for name in ("grad_clip", "zero_speed"):
         v = getattr(cfg, name)
         if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):

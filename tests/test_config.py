@@ -17,6 +17,7 @@ from scenegen_jax.config import PRESETS, Config, get_config
         ({"gn_groups": "5"}, "gn_groups: must divide hidden"),
         ({"bptt_window": "0"}, "bptt_window: must be an integer >= 1"),
         ({"warmup_steps": "-1"}, "warmup_steps: must be an integer >= 0"),
+        ({"decay_steps": "-5"}, "decay_steps: must be an integer >= 0"),
         ({"batch_size": "0"}, "batch_size: must be an integer >= 1"),
         ({"max_actors": "0"}, "max_actors: must be an integer >= 1"),
         ({"rotate_augment": "ture"}, "rotate_augment: must be true or false"),

@@ -96,6 +96,22 @@ def test_warmup_ramps_adams_step_linearly():
         np.testing.assert_allclose(updates["w"], -lr * np.sign(g["w"]), rtol=1e-4, atol=1e-9)
 
 
+def test_cosine_decay_follows_the_warm_up_to_zero():
+    """Adam's step under a constant gradient is the learning rate itself: after a 4-step
+    ramp it follows lr * (1 + cos(pi * t / 6)) / 2 over 6 decay steps (hand-computed), then
+    stays 0."""
+    cfg = CFG.replace(learning_rate=1e-2, warmup_steps=4, decay_steps=6, grad_clip=0.0)
+    params = {"w": jnp.zeros(3)}
+    g = {"w": jnp.array([0.5, -2.0, 1e-3])}
+    opt = make_optimizer(cfg)
+    state = opt.init(params)
+    expected = [0.0, 2.5e-3, 5e-3, 7.5e-3, 1e-2, 9.330127e-3, 7.5e-3, 5e-3, 2.5e-3, 6.69873e-4,
+                0.0, 0.0]
+    for lr in expected:
+        updates, state = opt.update(g, state, params)
+        np.testing.assert_allclose(updates["w"], -lr * np.sign(g["w"]), rtol=1e-4, atol=1e-9)
+
+
 def test_banded_weight_gradient_equals_the_convolutions_own(monkeypatch):
     """A convolution whose weight gradient is summed over row bands (with the kernel's halo):
     values and both gradients as XLA's own convolution's, for kernels 5, 3 and 1 and a row
@@ -244,6 +260,22 @@ def test_warm_start_extends_a_model_without_map_layers(tiny_train_cache, small_s
     del source.params["class_mlp0"]
     with pytest.raises(ValueError, match="src: no parameter class_mlp0"):
         warm_start(init_state(CFG).params, source.params, "src")
+
+
+def test_init_from_reads_a_pretrained_model_or_names_what_it_is_not(tmp_path):
+    """`--init-from` fine-tunes a pretrained model (directory or installed name) as well as a
+    workdir; a path that is neither names both."""
+    from scenegen_jax.pretrained import save_pretrained
+    from scenegen_jax.train.loop import start_params
+
+    params = init_state(CFG, seed=3).params
+    save_pretrained(str(tmp_path / "model"), CFG, params, 7, "test")
+    for a, b in zip(jax.tree.leaves(start_params(str(tmp_path / "model"))),
+                    jax.tree.leaves(params), strict=True):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(FileNotFoundError, match="neither a workdir with checkpoints/ nor a "
+                       "pretrained model .*installed"):
+        start_params(str(tmp_path / "nothing"))
 
 
 def test_coordinate_channels_tell_rows_apart_and_start_at_zero_from_a_warm_start():

@@ -77,9 +77,10 @@ def add_parsers(sub) -> None:
     sp.add_argument("--minutes", type=float, help="wall-time budget; stops and saves after it")
     sp.add_argument(
         "--init-from",
-        metavar="WORKDIR",
-        help="a fresh run starts from this workdir's trained parameters (fresh optimizer); "
-        "a model without map layers can be extended with them",
+        metavar="WORKDIR|MODEL",
+        help="a fresh run starts from the trained parameters of this workdir or pretrained "
+        "model (name or directory; fresh optimizer): fine-tuning; a model without map layers "
+        "can be extended with them",
     )
     add_distributed_args(sp, "training")
     sp.add_argument("--set", nargs="*", metavar="FIELD=VALUE", help="config overrides")

@@ -25,6 +25,7 @@ from scenegen_jax.distributions import TERMS
 from scenegen_jax.likelihood.batch import check_batch, gather_batch, local_rows, to_device
 from scenegen_jax.likelihood.terms import VEHICLE_TERMS
 from scenegen_jax.model.network import ATTRIBUTES
+from scenegen_jax.pretrained import load_pretrained
 from scenegen_jax.scene import CLASS_NAMES
 from scenegen_jax.train.data import resolve_weights, union_indices
 from scenegen_jax.train.step import (
@@ -160,8 +161,8 @@ def train(
 ) -> TrainState:
     """Trains until `steps` total steps (or `max_seconds` of wall time), resuming from
     `workdir`'s latest checkpoint; the last state is always saved. A fresh run (no checkpoint
-    yet) with `init_from` starts from that workdir's trained parameters (`warm_start`), with a
-    fresh optimizer and step 0.
+    yet) with `init_from` starts from the trained parameters of that workdir or pretrained
+    model (`start_params`, `warm_start`), with a fresh optimizer and step 0.
 
     `data_dir`: one cache or a list of caches of this config (`check_compatible`), trained on
     together (`CacheUnion`); each scene is drawn from cache i with probability
@@ -194,7 +195,7 @@ def train(
     if restored is not None:
         state = restored
     elif init_from is not None:
-        params = warm_start(state.params, load_params(init_from)[1], init_from)
+        params = warm_start(state.params, start_params(init_from), init_from)
         state = state._replace(params=params, opt_state=make_optimizer(cfg).init(params))
         log.info("starting from the parameters of %s", init_from)
     state = jax.device_put(state, replicated)
@@ -274,6 +275,18 @@ def split_attribute_mlp(source: dict, params: dict) -> dict:
         out[f"{name}2_b"] = source[f"{SHARED_ATTRIBUTE_MLP}2_b"][..., start:stop]
         start = stop
     return out
+
+
+def start_params(init_from: str):
+    """Parameters of a training workdir (its newest checkpoint), else of a pretrained model's
+    name or directory (`pretrained.load_pretrained`: fine-tuning a shipped model)."""
+    if os.path.isdir(os.path.join(init_from, CHECKPOINTS)):
+        return load_params(init_from)[1]
+    try:
+        return load_pretrained(init_from)[1]
+    except FileNotFoundError as e:
+        raise FileNotFoundError(f"--init-from: neither a workdir with {CHECKPOINTS}/ nor a "
+                                f"pretrained model ({e})") from e
 
 
 def warm_start(params, source, name: str):

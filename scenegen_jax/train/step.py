@@ -35,14 +35,26 @@ class TrainState(NamedTuple):
 
 
 def make_optimizer(cfg: Config) -> optax.GradientTransformation:
-    """Adam with an optional linear learning-rate warm-up and global-norm clipping."""
-    lr = cfg.learning_rate
-    if cfg.warmup_steps > 0:
-        lr = optax.linear_schedule(0.0, cfg.learning_rate, cfg.warmup_steps)
-    adam = optax.adam(lr)
+    """Adam with global-norm clipping and the learning-rate schedule `learning_rate_at`."""
+    adam = optax.adam(learning_rate_at(cfg))
     if cfg.grad_clip > 0:
         return optax.chain(optax.clip_by_global_norm(cfg.grad_clip), adam)
     return adam
+
+
+def learning_rate_at(cfg: Config) -> float | optax.Schedule:
+    """Adam's learning rate: `learning_rate`, after a linear ramp from 0 over `warmup_steps`
+    where set, and with `decay_steps` a cosine from `learning_rate` to 0 over that many steps
+    after the ramp (0 after them). A constant is a float: its optimizer state has no step
+    count, as in checkpoints saved before the schedules existed."""
+    peak = cfg.learning_rate
+    if cfg.decay_steps == 0:
+        return optax.linear_schedule(0.0, peak, cfg.warmup_steps) if cfg.warmup_steps else peak
+    decay = optax.cosine_decay_schedule(peak, cfg.decay_steps)
+    if cfg.warmup_steps == 0:
+        return decay
+    ramp = optax.linear_schedule(0.0, peak, cfg.warmup_steps)
+    return optax.join_schedules([ramp, decay], [cfg.warmup_steps])
 
 
 def init_state(cfg: Config, seed: int | None = None) -> TrainState:
