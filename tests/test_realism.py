@@ -11,6 +11,7 @@ from scenegen_jax.config import get_config
 from scenegen_jax.eval.realism import (
     drivable_share,
     lane_alignment,
+    lane_offsets,
     overlapping_pairs,
     realism_stats,
 )
@@ -58,6 +59,11 @@ def test_lane_alignment_and_drivable_share_hand_computed():
         (BICYCLIST, 0.5, 0.5, 90.0, 0.7, 1.8),  # not a vehicle
     ])
     assert lane_alignment(_canvas(), actors, CFG) == (3, 5)
+    np.testing.assert_allclose(lane_offsets(_canvas(), actors, CFG), [0, 15, 30, 180, 5],
+                               atol=1e-4)
+    # The median offset of the aligned three (0, 15, 5 degrees): 5.
+    stats = realism_stats([_canvas()], [actors], CFG)
+    assert stats["lane_offset_median_deg"] == pytest.approx(5.0, abs=1e-4)
     assert lane_alignment(_canvas(), actors, CFG, tolerance_deg=35.0) == (4, 5)
     assert drivable_share(_canvas(), actors, CFG) == (5, 6)
     # Only vehicles within the radius count: the second to fourth (0.71, 0.71, 1.58 m).

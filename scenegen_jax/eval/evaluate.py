@@ -119,11 +119,13 @@ def format_table(report: dict) -> str:
         lines.append(" | ".join([m, scene_nll, *row]))
     lines.append("")
     lines.append("realism | vehicles on drivable (of within 40 m) | lane-aligned (of on a lane) "
-                 "| overlapping pairs | actors/scene | vehicle / pedestrian / bicyclist")
+                 "| median offset of the aligned | overlapping pairs | actors/scene "
+                 "| vehicle / pedestrian / bicyclist")
     for m, r in report["realism"].items():
         mix = " / ".join(f"{v:.2f}" for v in r["class_mix"].values())
         lines.append(f"{m} | {_share(r['on_drivable_share'])} ({r['vehicles_within_40m']}) | "
                      f"{_share(r['lane_aligned_share'])} ({r['vehicles_on_lane']}) | "
+                     f"{_degrees(r.get('lane_offset_median_deg'))} | "
                      f"{r['overlapping_pairs']} | {r['actors_per_scene']:.1f} | {mix}")
     by_source = report.get("nll_by_source") or {}
     if len(by_source) > 1:
@@ -138,3 +140,7 @@ def format_table(report: dict) -> str:
 
 def _share(x) -> str:
     return "-" if x is None else f"{x:.1%}"
+
+
+def _degrees(x) -> str:
+    return "-" if x is None else f"{x:.1f} deg"

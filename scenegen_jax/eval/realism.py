@@ -45,19 +45,25 @@ def drivable_share(canvas: np.ndarray, actors, cfg: Config, radius_m: float = 40
     return int((drivable[row, col] > 0.5).sum()), total
 
 
-def lane_alignment(canvas: np.ndarray, actors, cfg: Config, radius_m: float = 40.0,
-                   tolerance_deg: float = LANE_TOLERANCE_DEG):
-    """(vehicles on a lane whose heading is within `tolerance_deg` of the lane's direction,
-    vehicles on a lane) for one unrotated scene; arguments as `drivable_share`. A vehicle is
-    on a lane where the lane orientation channels at its centre's pixel have length > 0.5
-    (they hold the lane's (cos, sin) direction in the ego frame, zero off every lane)."""
+def lane_offsets(canvas: np.ndarray, actors, cfg: Config, radius_m: float = 40.0):
+    """Angles (degrees, in [0, 180]) between the heading of each vehicle on a lane and the
+    lane's direction, for one unrotated scene; arguments as `drivable_share`. A vehicle is on
+    a lane where the lane orientation channels at its centre's pixel have length > 0.5 (they
+    hold the lane's (cos, sin) direction in the ego frame, zero off every lane)."""
     ic, is_ = (ALL_MAP_CHANNELS.index(c) for c in ORIENTATION_CHANNELS)
     row, col, slots, _ = _vehicle_pixels(canvas, actors, cfg, radius_m)
     cos, sin = (np.asarray(canvas[row, col, i], np.float64) for i in (ic, is_))
     on = np.hypot(cos, sin) > 0.5
     heading = np.asarray(actors.heading, np.float64)[slots[on]]
-    off = np.angle(np.exp(1j * (heading - np.arctan2(sin[on], cos[on]))))
-    return int((np.abs(off) <= np.radians(tolerance_deg)).sum()), int(on.sum())
+    return np.degrees(np.abs(np.angle(np.exp(1j * (heading - np.arctan2(sin[on], cos[on]))))))
+
+
+def lane_alignment(canvas: np.ndarray, actors, cfg: Config, radius_m: float = 40.0,
+                   tolerance_deg: float = LANE_TOLERANCE_DEG):
+    """(vehicles on a lane whose heading is within `tolerance_deg` of the lane's direction,
+    vehicles on a lane) for one unrotated scene (`lane_offsets`)."""
+    off = lane_offsets(canvas, actors, cfg, radius_m)
+    return int((off <= tolerance_deg).sum()), len(off)
 
 
 def overlapping_pairs(actors) -> int:
@@ -77,20 +83,24 @@ def overlapping_pairs(actors) -> int:
 def realism_stats(canvases, actors_list, cfg: Config) -> dict:
     """Realism figures of a set of scenes (numpy Actors each) on their unrotated map canvases:
     vehicles within 40 m of the ego and the share of them on the drivable area; vehicles on a
-    lane and the share of them aligned with it; overlapping box pairs (total and scenes with
+    lane, the share of them aligned with it and the median angle between the aligned ones and
+    their lane (how closely vehicles that follow a lane follow it); overlapping box pairs (total and scenes with
     any); actors per scene; the class mix."""
-    on = total = aligned = on_lane = 0
-    overlaps = []
+    on = total = 0
+    offsets, overlaps = [], []
     for canvas, actors in zip(canvases, actors_list, strict=True):
         a, b = drivable_share(canvas, actors, cfg)
-        c, d = lane_alignment(canvas, actors, cfg)
-        on, total, aligned, on_lane = on + a, total + b, aligned + c, on_lane + d
+        on, total = on + a, total + b
+        offsets.append(lane_offsets(canvas, actors, cfg))
         overlaps.append(overlapping_pairs(actors))
+    offsets = np.concatenate(offsets)
+    aligned = offsets[offsets <= LANE_TOLERANCE_DEG]
     return {
         "vehicles_within_40m": total,
         "on_drivable_share": on / total if total else None,
-        "vehicles_on_lane": on_lane,
-        "lane_aligned_share": aligned / on_lane if on_lane else None,
+        "vehicles_on_lane": len(offsets),
+        "lane_aligned_share": len(aligned) / len(offsets) if len(offsets) else None,
+        "lane_offset_median_deg": float(np.median(aligned)) if len(aligned) else None,
         "overlapping_pairs": int(sum(overlaps)),
         "scenes_with_overlap": int(np.count_nonzero(overlaps)),
         "actors_per_scene": float(np.mean([np.sum(a.valid) for a in actors_list])),
