@@ -9,8 +9,9 @@ run shows any progress. One measurement per process; prints one `RESULT {json}` 
     bench/.venv-torch/bin/python bench/first_result.py ref train --grid 128   # the reference
 
 Ours runs what the command line runs for the first batch of a preset as it ships (`tiny`,
-`cpu`; `paper` at `--grid`, T 25, B 1, the reference's shape): `compile_train_step` and one
-step on a fresh state of the preset, on a batch of its size; for scoring and sampling, the
+`cpu`; `paper` at `--grid`, T 25, B 1, the reference's shape): `first_train_step` (the
+split step on XLA:CPU, the one-program step compiling behind it as in a run of 1,000 steps)
+and one step on a fresh state of the preset, on a batch of its size; for scoring and sampling, the
 model loaded from a model directory as `scenegen score|sample --pretrained DIR` loads it (those
 commands never draw initial parameters), then the scorer's compiled call on the `score`
 command's default batch (8 scenes, one call per core), or `sample_scenes` on 8 maps. The
@@ -81,7 +82,7 @@ def ours(kind: str, config: str, grid: int, model: str | None) -> dict:
     from scenegen_jax.eval.nll import score_batch
     from scenegen_jax.likelihood.batch import crop_batch
     from scenegen_jax.pretrained import load_pretrained
-    from scenegen_jax.train.step import compile_train_step, init_state
+    from scenegen_jax.train.step import first_train_step, init_state
 
     t_import = process_age_s()
     if kind == "train":
@@ -96,7 +97,7 @@ def ours(kind: str, config: str, grid: int, model: str | None) -> dict:
         state = init_state(cfg)
         batch = jax.device_put(synthetic_batch(cfg, cfg.batch_size, cfg.max_actors))
         t = process_age_s()
-        step = compile_train_step(cfg, state, batch)
+        step = first_train_step(cfg, state, batch, None, steps=1000)
         out["compile_s"] = process_age_s() - t
         jax.block_until_ready(step(state, batch))
         out["batch"] = cfg.batch_size

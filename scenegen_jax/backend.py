@@ -146,6 +146,20 @@ def train_eigen_convolutions() -> bool:
     return on_cpu() and cpu_vendor() == "GenuineIntel"
 
 
+# Runs of more steps than this compile the one-program train step in the background while
+# they start on the split one (`train.step.QuickStartTrainStep`); shorter runs keep the split
+# step throughout (its compile saved outweighs its slower steps).
+QUICK_START_STEPS = 100
+
+
+def quick_start_training() -> bool:
+    """Whether training starts on the train step split into window programs
+    (`train.step.QuickStartTrainStep`): on XLA:CPU, whose one-program step unrolls every
+    window and compiles for tens of seconds before the first step (bench/README.md). On
+    accelerators the windows already run as a compiled loop."""
+    return on_cpu()
+
+
 def train_compiler_options() -> dict | None:
     """XLA compiler options for the train step: `FAST_COMPILE` and backend optimisation level
     1 on XLA:CPU, with `EIGEN_CONVOLUTIONS` where `train_eigen_convolutions`; None (XLA's

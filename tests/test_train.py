@@ -191,6 +191,61 @@ def test_overfit_two_real_scenes(tiny_train_cache, small_scenes):
     assert losses[-1] < 0.5 * losses[0], losses[::10]
 
 
+def test_split_train_step_equals_the_one_program_step(tiny_train_cache, small_scenes):
+    """The train step as three programs called window by window, the window's number traced
+    (`SplitTrainStep`), against the one-program step over two steps: the same loss, statistics
+    and gradient norm (a gradient missing a part, e.g. the map convolution's, changes it), and
+    the same parameters wherever the gradient is not ~0 (Adam's first steps move a parameter
+    by about the learning rate whatever its gradient's size)."""
+    from scenegen_jax.train.step import SplitTrainStep
+
+    cfg = CFG.replace(rotate_augment=True)
+    batch = jax.device_put(_batch(tiny_train_cache, small_scenes))
+    split, fused = SplitTrainStep(cfg, init_state(cfg), batch), make_train_step(cfg)
+    a, b = init_state(cfg), init_state(cfg)  # each step donates its state
+    for _ in range(2):
+        a, sa = split(a, batch)
+        b, sb = fused(b, batch)
+        for k in sb:
+            np.testing.assert_allclose(sa[k], sb[k], rtol=2e-5, atol=1e-5, err_msg=k)
+        close = [np.isclose(x, y, rtol=1e-4, atol=1e-6)
+                 for x, y in zip(jax.tree.leaves(a.params), jax.tree.leaves(b.params),
+                                 strict=True)]
+        assert np.mean(np.concatenate([c.ravel() for c in close])) > 0.99
+    assert int(a.step) == 2
+
+
+def test_quick_start_swaps_in_the_one_program_step_once_compiled(monkeypatch):
+    """`QuickStartTrainStep` runs the split step until the background compile of the
+    one-program step is done, then that one; runs of at most QUICK_START_STEPS steps never
+    start the background compile; `close` waits for it. (Stand-ins for both steps: the
+    logic, not the compiler.)"""
+    import threading
+
+    from scenegen_jax.backend import QUICK_START_STEPS
+    from scenegen_jax.train import step as step_module
+
+    release = threading.Event()
+
+    def compile_fused(*args):
+        release.wait(timeout=30)
+        return lambda state, batch: ("fused", state)
+
+    monkeypatch.setattr(step_module, "SplitTrainStep",
+                        lambda *args: (lambda state, batch: ("split", state)))
+    monkeypatch.setattr(step_module, "compile_train_step", compile_fused)
+    state, batch = (jnp.zeros(2), jnp.ones(3)), jnp.ones(4)
+    short = step_module.QuickStartTrainStep(CFG, state, batch, None, QUICK_START_STEPS)
+    assert short(state, batch)[0] == "split"
+    short.close()
+    assert short(state, batch)[0] == "split"  # no background compile at all
+    quick = step_module.QuickStartTrainStep(CFG, state, batch, None, QUICK_START_STEPS + 1)
+    assert quick(state, batch)[0] == "split"  # still compiling
+    release.set()
+    quick.close()
+    assert quick(state, batch)[0] == "fused"
+
+
 def test_train_step_compiles_once(tiny_train_cache):
     traces = []
 

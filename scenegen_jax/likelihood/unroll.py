@@ -381,45 +381,72 @@ def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | 
     return _join_windows(terms, scenes)
 
 
+def map_gates_and_vjp(params, cfg: Config, maps):
+    """The map share of layer 1's input gates [B, H, W, 4h] (computed once per scene) and its
+    vjp with respect to the parameters."""
+    net = SceneGenNet(cfg)
+    return jax.vjp(lambda p: net.apply({"params": p}, maps, method=SceneGenNet.map_gates),
+                   params)
+
+
+def grads_prologue(params, cfg: Config, maps, scene: Scene, map_gates):
+    """What every window of `unroll_terms_and_grads` reads, and the first window's
+    accumulator: (scenes, ((zero ConvLSTM state, ego-only raster), zero parameter gradients,
+    zero map-gate gradient))."""
+    scenes = _scenes(params, cfg, maps, scene)
+    acc = ((scenes.state0, scenes.raster0), jax.tree.map(jnp.zeros_like, params),
+           jnp.zeros_like(map_gates))
+    return scenes, acc
+
+
+def window_grads(params, map_gates, scenes: _Scenes, cfg: Config, scale, acc, index):
+    """One window of `unroll_terms_and_grads`: (accumulator with this window's carry and
+    gradients added, the window's terms). `index` is the window's number, static (a scene's
+    first window then skips the zero state's recurrent convolutions) or traced."""
+    carry, g_params, g_map = acc
+
+    def loss(p, gates):
+        out, terms = window_terms(p, gates, carry, index * cfg.bptt_window, scenes, cfg,
+                                  cfg.hard_negatives)
+        return -scale * sum(jnp.sum(v) for v in terms.values()), (out, terms)
+
+    (_, (carry, terms)), (gp, gm) = jax.value_and_grad(loss, (0, 1), has_aux=True)(
+        params, map_gates
+    )
+    # The next window starts once this one's backward is done (a zero taken from its
+    # gradient: XLA does not fold 0 * x for floats), so unrolled windows (CPU) also hold
+    # one window's activations at a time. A NaN gradient would make the later windows
+    # NaN as well: that step is lost either way.
+    zero = 0.0 * gm.ravel()[0]
+    carry = jax.tree.map(lambda x: x + zero.astype(x.dtype), carry)
+    return (carry, jax.tree.map(jnp.add, g_params, gp), g_map + gm), terms
+
+
+def grads_epilogue(map_vjp, scenes: _Scenes, acc, terms: dict):
+    """(unrolled terms as `unroll_terms`, parameter gradient) from the last window's
+    accumulator and every window's terms (name -> [windows, B, W]): the map-gate gradient,
+    summed over the windows, taken through the map convolution (`map_vjp`) once."""
+    _, g_params, g_map = acc
+    (g_from_map,) = map_vjp(g_map)
+    return _join_windows(terms, scenes), jax.tree.map(jnp.add, g_params, g_from_map)
+
+
 def unroll_terms_and_grads(params, cfg: Config, maps, scene: Scene, scale):
     """`unroll_terms` with the training normaliser, and the gradient of
     -scale * (sum of all terms) with respect to params, computed window by window.
 
     No gradient crosses a window boundary (truncated BPTT), so each window's backward pass
-    runs right after its forward pass, in a `lax.scan` over the windows: on an accelerator
-    the train step holds one window's activations and compiles one window, whatever
-    `cfg.max_actors` (the `paper` preset has 6 windows; on CPU the windows are unrolled,
-    `scan_windows`). The map share of layer 1's input gates is still computed
+    runs right after its forward pass (`window_grads`), in a `lax.scan` over the windows: on
+    an accelerator the train step holds one window's activations and compiles one window,
+    whatever `cfg.max_actors` (the `paper` preset has 6 windows; on CPU the windows are
+    unrolled, `scan_windows`). The map share of layer 1's input gates is still computed
     once per scene; its gradient is summed over the windows and taken through the map
-    convolution once. Equal to `jax.grad` of that sum through `unroll_terms` (tested).
+    convolution once. Equal to `jax.grad` of that sum through `unroll_terms` (tested). The
+    same three parts (`grads_prologue`, `window_grads`, `grads_epilogue`) also run as
+    separate compiled programs (`train.step.SplitTrainStep`).
     """
-    net = SceneGenNet(cfg)
-    scenes = _scenes(params, cfg, maps, scene)
-    map_gates, map_vjp = jax.vjp(
-        lambda p: net.apply({"params": p}, maps, method=SceneGenNet.map_gates), params
-    )
-
-    def window(acc, index):
-        carry, g_params, g_map = acc
-
-        def loss(p, gates):
-            out, terms = window_terms(p, gates, carry, index * cfg.bptt_window, scenes, cfg,
-                                      cfg.hard_negatives)
-            return -scale * sum(jnp.sum(v) for v in terms.values()), (out, terms)
-
-        (_, (carry, terms)), (gp, gm) = jax.value_and_grad(loss, (0, 1), has_aux=True)(
-            params, map_gates
-        )
-        # The next window starts once this one's backward is done (a zero taken from its
-        # gradient: XLA does not fold 0 * x for floats), so unrolled windows (CPU) also hold
-        # one window's activations at a time. A NaN gradient would make the later windows
-        # NaN as well: that step is lost either way.
-        zero = 0.0 * gm.ravel()[0]
-        carry = jax.tree.map(lambda x: x + zero.astype(x.dtype), carry)
-        return (carry, jax.tree.map(jnp.add, g_params, gp), g_map + gm), terms
-
-    zeros = jax.tree.map(jnp.zeros_like, params)
-    init = ((scenes.state0, scenes.raster0), zeros, jnp.zeros_like(map_gates))
-    (_, g_params, g_map), terms = scan_windows(window, init, num_windows(cfg))
-    (g_from_map,) = map_vjp(g_map)
-    return _join_windows(terms, scenes), jax.tree.map(jnp.add, g_params, g_from_map)
+    map_gates, map_vjp = map_gates_and_vjp(params, cfg, maps)
+    scenes, acc = grads_prologue(params, cfg, maps, scene, map_gates)
+    body = functools.partial(window_grads, params, map_gates, scenes, cfg, scale)
+    acc, terms = scan_windows(body, acc, num_windows(cfg))
+    return grads_epilogue(map_vjp, scenes, acc, terms)

@@ -30,7 +30,7 @@ from scenegen_jax.scene import CLASS_NAMES
 from scenegen_jax.train.data import resolve_weights, union_indices
 from scenegen_jax.train.step import (
     TrainState,
-    compile_train_step,
+    first_train_step,
     init_state,
     make_optimizer,
 )
@@ -220,7 +220,7 @@ def train(
         check_batch(host, [cache.scene_name(i) for i in indices])
         batch = to_device(host, data_sharding, cfg.batch_size)
         if step_fn is None:
-            step_fn = compile_train_step(cfg, state, batch, mesh)
+            step_fn = first_train_step(cfg, state, batch, mesh, steps - step)
         state, stats = step_fn(state, batch)
         stats = {**stats, "batches": 1}
         acc = stats if acc is None else jax.tree.map(lambda a, b: a + b, acc, stats)
@@ -243,6 +243,8 @@ def train(
             log.info("time budget of %.0f s used after step %d; stopping", max_seconds, done)
             break
     bar.close()
+    if hasattr(step_fn, "close"):  # a background compile still running (`first_train_step`)
+        step_fn.close()
     ckpt.close()
     return state
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import concurrent.futures
+import functools
 from typing import Any, NamedTuple
 
 import jax
@@ -11,11 +13,25 @@ from jax.flatten_util import ravel_pytree
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from scenegen_jax.backend import DATA_AXIS, release_freed_memory, train_compiler_options
+from scenegen_jax.backend import (
+    DATA_AXIS,
+    QUICK_START_STEPS,
+    quick_start_training,
+    release_freed_memory,
+    train_compiler_options,
+)
 from scenegen_jax.config import Config
 from scenegen_jax.likelihood.batch import Batch, crop_batch
 from scenegen_jax.likelihood.terms import mean_nll
-from scenegen_jax.likelihood.unroll import unroll_terms, unroll_terms_and_grads
+from scenegen_jax.likelihood.unroll import (
+    grads_epilogue,
+    grads_prologue,
+    map_gates_and_vjp,
+    num_windows,
+    unroll_terms,
+    unroll_terms_and_grads,
+    window_grads,
+)
 from scenegen_jax.model.network import init_params
 
 
@@ -88,16 +104,9 @@ def _psum_packed(tree, axis: str | None):
     return jax.tree.map(lambda x, y: y.astype(x.dtype), tree, summed)
 
 
-def train_step(
-    state: TrainState, batch: Batch, cfg: Config, axis: str | None = None
-) -> tuple[TrainState, dict]:
-    """One optimizer step on a batch (pure; jit it with `make_train_step`).
-
-    With `axis` (inside `shard_map` over a `data` mesh axis) `batch` is this device's part
-    of the global batch: it takes its own slice of the step's rotations, its gradient and
-    statistics are summed over the devices in one all-reduce, and every device applies the
-    same update.
-    """
+def _step_inputs(state: TrainState, batch: Batch, cfg: Config, axis: str | None):
+    """(maps, scene, global batch size, devices) of a step: the step's rotations (this
+    device's slice of them with `axis`), the crop, and map dropout."""
     key = jax.random.fold_in(jax.random.wrap_key_data(state.key), state.step)
     local = batch.actors.cls.shape[0]
     devices = 1 if axis is None else jax.lax.axis_size(axis)
@@ -111,14 +120,34 @@ def train_step(
     if cfg.map_dropout > 0:
         keep = jax.random.uniform(jax.random.fold_in(key, 1), (b, 1, 1, 1)) >= cfg.map_dropout
         maps = maps * jax.lax.dynamic_slice_in_dim(keep, first, local)
-    # loss_fn's value, and its gradient taken one window at a time.
-    unrolled, grads = unroll_terms_and_grads(state.params, cfg, maps, scene, 1.0 / b)
+    return maps, scene, b, devices
+
+
+def _apply_grads(state: TrainState, cfg: Config, unrolled, grads, devices, axis: str | None):
+    """(next state, stats): the loss and stats of the unrolled terms, summed with the
+    gradient over the devices in one all-reduce (`axis`), and the optimizer's update."""
     loss, stats = mean_nll(unrolled)
     grads, stats, loss = _psum_packed((grads, stats, loss / devices), axis)
     updates, opt_state = make_optimizer(cfg).update(grads, state.opt_state, state.params)
     params = optax.apply_updates(state.params, updates)
     stats = {**stats, "loss": loss, "grad_norm": optax.global_norm(grads)}
     return TrainState(state.step + 1, params, opt_state, state.key), stats
+
+
+def train_step(
+    state: TrainState, batch: Batch, cfg: Config, axis: str | None = None
+) -> tuple[TrainState, dict]:
+    """One optimizer step on a batch (pure; jit it with `make_train_step`).
+
+    With `axis` (inside `shard_map` over a `data` mesh axis) `batch` is this device's part
+    of the global batch: it takes its own slice of the step's rotations, its gradient and
+    statistics are summed over the devices in one all-reduce, and every device applies the
+    same update.
+    """
+    maps, scene, b, devices = _step_inputs(state, batch, cfg, axis)
+    # loss_fn's value, and its gradient taken one window at a time.
+    unrolled, grads = unroll_terms_and_grads(state.params, cfg, maps, scene, 1.0 / b)
+    return _apply_grads(state, cfg, unrolled, grads, devices, axis)
 
 
 def make_train_step(cfg: Config, mesh: Mesh | None = None):
@@ -157,3 +186,95 @@ def compile_train_step(cfg: Config, state: TrainState, batch: Batch, mesh: Mesh 
     step = make_train_step(cfg, mesh).lower(state, batch).compile()
     release_freed_memory()
     return step
+
+
+class SplitTrainStep:
+    """`train_step` on one device as three compiled programs called from Python: the step's
+    inputs and the first window's accumulator, one window (its number traced, so every
+    window runs one program), then the map gradient, the loss and the optimizer's update.
+    The same functions as the one-program step (`likelihood.unroll.grads_prologue`,
+    `window_grads`, `grads_epilogue`), the same values up to float rounding (tested). The
+    window program is a fraction of the one-program step's (one window instead of all of
+    them, unrolled on XLA:CPU), so it compiles in about half the time; it runs a little
+    slower (no zero-state shortcut in the first window, no overlap between windows), so
+    `QuickStartTrainStep` swaps the one-program step in once it is compiled. The three
+    programs compile side by side; the state argument is donated."""
+
+    def __init__(self, cfg: Config, state: TrainState, batch: Batch):
+        scale = 1.0 / batch.actors.cls.shape[0]
+        self._windows = num_windows(cfg)
+
+        def prologue(state, batch):
+            maps, scene, _, _ = _step_inputs(state, batch, cfg, None)
+            map_gates, _ = map_gates_and_vjp(state.params, cfg, maps)
+            scenes, acc = grads_prologue(state.params, cfg, maps, scene, map_gates)
+            return maps, map_gates, scenes, acc
+
+        def window(params, map_gates, scenes, acc, index):
+            return window_grads(params, map_gates, scenes, cfg, scale, acc, index)
+
+        def epilogue(state, maps, scenes, acc, terms):
+            _, map_vjp = map_gates_and_vjp(state.params, cfg, maps)
+            terms = jax.tree.map(lambda *x: jnp.stack(x), *terms)
+            unrolled, grads = grads_epilogue(map_vjp, scenes, acc, terms)
+            return _apply_grads(state, cfg, unrolled, grads, 1, None)
+
+        jit = functools.partial(jax.jit, compiler_options=train_compiler_options())
+        lowered = [jit(prologue).lower(state, batch)]
+        maps, map_gates, scenes, acc = lowered[0].out_info
+        index = jax.ShapeDtypeStruct((), jnp.int32)
+        lowered.append(jit(window, donate_argnums=3).lower(state.params, map_gates, scenes, acc,
+                                                          index))
+        terms = [lowered[1].out_info[1]] * self._windows
+        lowered.append(jit(epilogue, donate_argnums=0).lower(state, maps, scenes, acc, terms))
+        with concurrent.futures.ThreadPoolExecutor(len(lowered)) as pool:
+            self._prologue, self._window, self._epilogue = pool.map(
+                lambda x: x.compile(), lowered)
+        release_freed_memory()
+
+    def __call__(self, state: TrainState, batch: Batch) -> tuple[TrainState, dict]:
+        maps, map_gates, scenes, acc = self._prologue(state, batch)
+        terms = []
+        for index in range(self._windows):
+            acc, t = self._window(state.params, map_gates, scenes, acc, index)
+            terms.append(t)
+        return self._epilogue(state, maps, scenes, acc, terms)
+
+
+class QuickStartTrainStep:
+    """A train step that starts on `SplitTrainStep` and, for runs of more than
+    `backend.QUICK_START_STEPS` steps, compiles the one-program step (`compile_train_step`)
+    on a background thread and uses it from the first step after it is ready. The first
+    step comes after the split programs' compile, about half the one-program step's on
+    XLA:CPU (bench/README.md). `close` waits for a background compile still running."""
+
+    def __init__(self, cfg: Config, state: TrainState, batch: Batch, mesh: Mesh | None,
+                 steps: int):
+        # Shapes only: the split step donates the arrays before the background lowering.
+        shapes = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype,
+                                                             sharding=x.sharding),
+                              (state, batch))
+        self._split = SplitTrainStep(cfg, state, batch)
+        self._pool = self._fused = None
+        if steps > QUICK_START_STEPS:
+            self._pool = concurrent.futures.ThreadPoolExecutor(1)
+            self._fused = self._pool.submit(compile_train_step, cfg, *shapes, mesh)
+
+    def __call__(self, state: TrainState, batch: Batch) -> tuple[TrainState, dict]:
+        if self._fused is not None and self._fused.done():
+            return self._fused.result()(state, batch)
+        return self._split(state, batch)
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+
+
+def first_train_step(cfg: Config, state: TrainState, batch: Batch, mesh: Mesh | None,
+                     steps: int):
+    """The train step a run of `steps` more steps starts with: `QuickStartTrainStep` where
+    `backend.quick_start_training` (XLA:CPU, one device), else `compile_train_step`. Call
+    its `close` (if it has one) when the run ends."""
+    if quick_start_training() and (mesh is None or mesh.size == 1):
+        return QuickStartTrainStep(cfg, state, batch, mesh, steps)
+    return compile_train_step(cfg, state, batch, mesh)
