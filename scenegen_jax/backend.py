@@ -2,8 +2,9 @@
 
 What differs between XLA:CPU and accelerators: which loops are compiled (XLA:CPU runs
 convolution gradients inside loops many times slower), how large convolutions take their
-weight gradients, the compiler options of the parameter initialisation, the train step, the
-scorer and the sampler, how many calls run at once and how many scenes are vmapped together,
+weight gradients, how training starts (on the train step split into window programs while
+the one-program step compiles), the compiler options of the parameter initialisation, the
+train step, the scorer and the sampler, how many calls run at once and how many scenes are vmapped together,
 the device mesh, and returning the compiler's freed host memory. Also where a multi-process
 job starts and which process writes.
 
