@@ -4,9 +4,9 @@ What differs between XLA:CPU and accelerators: which loops are compiled (XLA:CPU
 convolution gradients inside loops many times slower), how large convolutions take their
 weight gradients, how training starts (on the train step split into window programs while
 the one-program step compiles), the compiler options of the parameter initialisation, the
-train step, the scorer and the sampler, how many calls run at once and how many scenes are vmapped together,
-the device mesh, and returning the compiler's freed host memory. Also where a multi-process
-job starts and which process writes.
+train step, the scorer and the sampler, how many calls run at once and how many scenes are
+vmapped together, the device mesh, and returning the compiler's freed host memory. Also where
+a multi-process job starts and which process writes.
 
 What differs between CPUs, read once from /proc/cpuinfo (`cpu_vendor`): which library runs
 the train step's convolutions and the row bands of their weight gradients (Intel: Eigen,

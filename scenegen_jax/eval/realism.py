@@ -84,8 +84,8 @@ def realism_stats(canvases, actors_list, cfg: Config) -> dict:
     """Realism figures of a set of scenes (numpy Actors each) on their unrotated map canvases:
     vehicles within 40 m of the ego and the share of them on the drivable area; vehicles on a
     lane, the share of them aligned with it and the median angle between the aligned ones and
-    their lane (how closely vehicles that follow a lane follow it); overlapping box pairs (total and scenes with
-    any); actors per scene; the class mix."""
+    their lane (how closely vehicles that follow a lane follow it); overlapping box pairs
+    (total and scenes with any); actors per scene; the class mix."""
     on = total = 0
     offsets, overlaps = [], []
     for canvas, actors in zip(canvases, actors_list, strict=True):
