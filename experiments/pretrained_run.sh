@@ -19,9 +19,12 @@
 #   INIT_FROM=DIR experiments/pretrained_run.sh   (DIR: the previous phase's workdir or a
 #   pretrained model; only used when experiments/pretrained_run has no checkpoint yet)
 # NOMAP=1 experiments/pretrained_run.sh ... trains the same recipe without map layers (and so
-# without attribute_map_input and attribute_map_skip), from scratch, in experiments/nomap_run/:
-# the model the shipped one is compared with by `scenegen compare` at as many steps (4,142,
-# reached in session 24: experiments/results/README.md; issue 21).
+# without attribute_map_input and attribute_map_skip) in experiments/nomap_run/: the model the
+# shipped one is compared with by `scenegen compare` (issue 21). Its first phase went from
+# scratch to step 4,142 at a constant learning rate (session 24; metrics
+# experiments/results/nomap_run_const_metrics.jsonl); session 26 started its decay phase, the
+# same as the shipped model's sixth, from that step 4,142 (INIT_FROM=runs/nomap_run_const4142,
+# a copy of that workdir): NOMAP=1 INIT_FROM=DIR experiments/pretrained_run.sh 950 1.
 # Usage: [NOMAP=1] experiments/pretrained_run.sh [STEPS] [CORE] [MINUTES]
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -37,11 +40,13 @@ prep() {  # SOURCE ROOT SPLIT OUT [prepare options]
 prep av2 "$SHARED/av2_sensor_mini" train runs/cache_cpu_av2_train --stride 1
 prep womd_json "$SHARED/womd_mini/gpudrive_json" train runs/cache_cpu_womdjson_train
 prep scenarionet "$SHARED/womd_mini/scenarionet" train runs/cache_cpu_womdpkl_train
+# The sixth phase's schedule and seed, shared by both runs (equal steps and data order).
+PHASE="decay_steps=900 seed=6"
 if [ -n "${NOMAP:-}" ]; then
-    WORKDIR=experiments/nomap_run INPUTS="map_layers=none"
+    WORKDIR=experiments/nomap_run INPUTS="map_layers=none $PHASE"
 else
     WORKDIR=experiments/pretrained_run
-    INPUTS="attribute_map_input=true attribute_map_skip=true decay_steps=900 seed=6"
+    INPUTS="attribute_map_input=true attribute_map_skip=true $PHASE"
 fi
 XLA_FLAGS=--xla_cpu_multi_thread_eigen=false taskset -c "$CORE" $BIN/scenegen train \
     --config cpu --set coord_channels=true order_channel=true $INPUTS \

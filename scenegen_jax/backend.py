@@ -153,6 +153,15 @@ def train_eigen_convolutions() -> bool:
 QUICK_START_STEPS = 100
 
 
+# Steps of a window per pair of programs of the split train step (`likelihood.unroll.
+# chunk_steps`, `train.step.SplitTrainStep`). One Intel Xeon core, the other busy (session 26):
+# a window of 25 steps (`tiny`) compiled as one program in 14.8 s; as chunks of 5, forward 5.1
+# and backward 3.4 s (side by side on 2 cores), the window as fast (0.92-0.96 against 0.95 s);
+# chunks of 1 compiled in 4.1 + 2.3 s but ran 14 % slower. `cpu` (windows of 20): 16.6 s
+# against 6.6 + 4.4 s, 2.86 against 2.97 s a window.
+SPLIT_CHUNK_STEPS = 5
+
+
 def quick_start_training() -> bool:
     """Whether training starts on the train step split into window programs
     (`train.step.QuickStartTrainStep`): on XLA:CPU, whose one-program step unrolls every

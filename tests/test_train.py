@@ -192,9 +192,10 @@ def test_overfit_two_real_scenes(tiny_train_cache, small_scenes):
 
 
 def test_split_train_step_equals_the_one_program_step(tiny_train_cache, small_scenes):
-    """The train step as three programs called window by window, the window's number traced
-    (`SplitTrainStep`), against the one-program step over two steps: the same loss, statistics
-    and gradient norm (a gradient missing a part, e.g. the map convolution's, changes it), and
+    """The train step as programs called chunk by chunk, each window's chunks' backward passes
+    chained through the carry (`SplitTrainStep`; two chunks of 4 steps a window here), against
+    the one-program step over two steps: the same loss, statistics and gradient norm (a
+    gradient missing a part, e.g. the map convolution's or a chunk's carry, changes it), and
     the same parameters wherever the gradient is not ~0 (Adam's first steps move a parameter
     by about the learning rate whatever its gradient's size)."""
     from scenegen_jax.train.step import SplitTrainStep

@@ -422,10 +422,43 @@ def window_grads(params, map_gates, scenes: _Scenes, cfg: Config, scale, acc, in
     return (carry, jax.tree.map(jnp.add, g_params, gp), g_map + gm), terms
 
 
+def chunk_steps(cfg: Config) -> int:
+    """Steps of a window that one call of `chunk_forward` runs when a train step goes chunk by
+    chunk (`train.step.SplitTrainStep`): the largest divisor of `cfg.bptt_window` up to
+    `backend.SPLIT_CHUNK_STEPS`."""
+    return max(d for d in range(1, backend.SPLIT_CHUNK_STEPS + 1) if cfg.bptt_window % d == 0)
+
+
+def chunk_forward(params, map_gates, scenes: _Scenes, cfg: Config, scale, carry, start):
+    """The `chunk_steps(cfg)` steps of a window from step `start` (traced) given the carried
+    (ConvLSTM state, actor raster): (carry after them, their terms name -> [B, steps], vjp).
+    `vjp(g_carry)` -> (parameter gradient, map-gate gradient, carry cotangent) of
+    -scale * (sum of the chunk's terms) plus <g_carry, carry after>: chained from a window's
+    last chunk (g_carry zero: no gradient across windows) to its first, the chunks' gradients
+    add up to `window_grads`'s (tested). vjp is a `jax.tree_util.Partial` holding the chunk's
+    activations, so it leaves one compiled program and enters another (`chunk_backward`)."""
+    sub = cfg.replace(bptt_window=chunk_steps(cfg))
+
+    def loss(p, gates, c):
+        out, terms = window_terms(p, gates, c, start, scenes, sub, cfg.hard_negatives)
+        return (out, -scale * sum(jnp.sum(v) for v in terms.values())), terms
+
+    (carry, _), vjp, terms = jax.vjp(loss, params, map_gates, carry, has_aux=True)
+    return carry, terms, vjp
+
+
+def chunk_backward(vjp, g_carry, g_params, g_map):
+    """A chunk's backward pass (`chunk_forward`'s vjp): (g_params and g_map with the chunk's
+    gradients added, the cotangent of the carry the chunk started from)."""
+    gp, gm, g_carry = vjp((g_carry, jnp.ones((), jnp.float32)))
+    return jax.tree.map(jnp.add, g_params, gp), g_map + gm, g_carry
+
+
 def grads_epilogue(map_vjp, scenes: _Scenes, acc, terms: dict):
     """(unrolled terms as `unroll_terms`, parameter gradient) from the last window's
-    accumulator and every window's terms (name -> [windows, B, W]): the map-gate gradient,
-    summed over the windows, taken through the map convolution (`map_vjp`) once."""
+    accumulator and every window's terms (name -> [windows, B, W]; or every chunk's, name ->
+    [chunks, B, steps], in step order): the map-gate gradient, summed over the windows, taken
+    through the map convolution (`map_vjp`) once."""
     _, g_params, g_map = acc
     (g_from_map,) = map_vjp(g_map)
     return _join_windows(terms, scenes), jax.tree.map(jnp.add, g_params, g_from_map)
@@ -441,9 +474,9 @@ def unroll_terms_and_grads(params, cfg: Config, maps, scene: Scene, scale):
     whatever `cfg.max_actors` (the `paper` preset has 6 windows; on CPU the windows are
     unrolled, `scan_windows`). The map share of layer 1's input gates is still computed
     once per scene; its gradient is summed over the windows and taken through the map
-    convolution once. Equal to `jax.grad` of that sum through `unroll_terms` (tested). The
-    same three parts (`grads_prologue`, `window_grads`, `grads_epilogue`) also run as
-    separate compiled programs (`train.step.SplitTrainStep`).
+    convolution once. Equal to `jax.grad` of that sum through `unroll_terms` (tested).
+    `train.step.SplitTrainStep` runs `grads_prologue` and `grads_epilogue` as programs of
+    their own, and each window as chunks (`chunk_forward`, `chunk_backward`).
     """
     map_gates, map_vjp = map_gates_and_vjp(params, cfg, maps)
     scenes, acc = grads_prologue(params, cfg, maps, scene, map_gates)

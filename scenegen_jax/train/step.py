@@ -24,13 +24,15 @@ from scenegen_jax.config import Config
 from scenegen_jax.likelihood.batch import Batch, crop_batch
 from scenegen_jax.likelihood.terms import mean_nll
 from scenegen_jax.likelihood.unroll import (
+    chunk_backward,
+    chunk_forward,
+    chunk_steps,
     grads_epilogue,
     grads_prologue,
     map_gates_and_vjp,
     num_windows,
     unroll_terms,
     unroll_terms_and_grads,
-    window_grads,
 )
 from scenegen_jax.model.network import init_params
 
@@ -189,56 +191,68 @@ def compile_train_step(cfg: Config, state: TrainState, batch: Batch, mesh: Mesh 
 
 
 class SplitTrainStep:
-    """`train_step` on one device as three compiled programs called from Python: the step's
-    inputs and the first window's accumulator, one window (its number traced, so every
-    window runs one program), then the map gradient, the loss and the optimizer's update.
-    The same functions as the one-program step (`likelihood.unroll.grads_prologue`,
-    `window_grads`, `grads_epilogue`), the same values up to float rounding (tested). The
-    window program is a fraction of the one-program step's (one window instead of all of
-    them, unrolled on XLA:CPU), so it compiles in about half the time; it runs a little
-    slower (no zero-state shortcut in the first window, no overlap between windows), so
-    `QuickStartTrainStep` swaps the one-program step in once it is compiled. The three
-    programs compile side by side; the state argument is donated."""
+    """`train_step` on one device as four compiled programs called from Python: the step's
+    inputs (`grads_prologue`); a chunk of a window's steps forward, its first step traced, so
+    every chunk runs one program (`chunk_forward`); that chunk's backward pass, chained from a
+    window's last chunk to its first (`chunk_backward`); the map gradient, the loss and the
+    optimizer's update (`grads_epilogue`). The same values as the one-program step up to
+    float rounding (tested). The chunk programs hold a few steps instead of every window
+    unrolled (XLA:CPU), so they compile in a third of the one-program step's time; a step
+    runs a little slower (no zero-state shortcut in the first window, no overlap between
+    windows), so `QuickStartTrainStep` swaps the one-program step in once it is compiled.
+    The programs compile side by side; the state argument is donated."""
 
     def __init__(self, cfg: Config, state: TrainState, batch: Batch):
         scale = 1.0 / batch.actors.cls.shape[0]
-        self._windows = num_windows(cfg)
+        self._starts = [range(w * cfg.bptt_window, (w + 1) * cfg.bptt_window,
+                              chunk_steps(cfg)) for w in range(num_windows(cfg))]
 
         def prologue(state, batch):
             maps, scene, _, _ = _step_inputs(state, batch, cfg, None)
             map_gates, _ = map_gates_and_vjp(state.params, cfg, maps)
-            scenes, acc = grads_prologue(state.params, cfg, maps, scene, map_gates)
-            return maps, map_gates, scenes, acc
+            scenes, (carry, g_params, g_map) = grads_prologue(state.params, cfg, maps, scene,
+                                                              map_gates)
+            no_grad = jax.tree.map(jnp.zeros_like, carry)  # a window's last chunk's cotangent
+            return maps, map_gates, scenes, carry, g_params, g_map, no_grad
 
-        def window(params, map_gates, scenes, acc, index):
-            return window_grads(params, map_gates, scenes, cfg, scale, acc, index)
+        def forward(params, map_gates, scenes, carry, start):
+            return chunk_forward(params, map_gates, scenes, cfg, scale, carry, start)
 
-        def epilogue(state, maps, scenes, acc, terms):
+        def epilogue(state, maps, scenes, g_params, g_map, terms):
             _, map_vjp = map_gates_and_vjp(state.params, cfg, maps)
             terms = jax.tree.map(lambda *x: jnp.stack(x), *terms)
-            unrolled, grads = grads_epilogue(map_vjp, scenes, acc, terms)
+            unrolled, grads = grads_epilogue(map_vjp, scenes, (None, g_params, g_map), terms)
             return _apply_grads(state, cfg, unrolled, grads, 1, None)
 
         jit = functools.partial(jax.jit, compiler_options=train_compiler_options())
         lowered = [jit(prologue).lower(state, batch)]
-        maps, map_gates, scenes, acc = lowered[0].out_info
-        index = jax.ShapeDtypeStruct((), jnp.int32)
-        lowered.append(jit(window, donate_argnums=3).lower(state.params, map_gates, scenes, acc,
-                                                          index))
-        terms = [lowered[1].out_info[1]] * self._windows
-        lowered.append(jit(epilogue, donate_argnums=0).lower(state, maps, scenes, acc, terms))
+        maps, map_gates, scenes, carry, g_params, g_map, _ = lowered[0].out_info
+        start = jax.ShapeDtypeStruct((), jnp.int32)
+        lowered.append(jit(forward).lower(state.params, map_gates, scenes, carry, start))
+        _, chunk_terms, vjp = lowered[1].out_info
+        lowered.append(jit(chunk_backward, donate_argnums=(2, 3)).lower(vjp, carry, g_params,
+                                                                        g_map))
+        terms = [chunk_terms] * sum(map(len, self._starts))
+        lowered.append(jit(epilogue, donate_argnums=0).lower(state, maps, scenes, g_params,
+                                                             g_map, terms))
         with concurrent.futures.ThreadPoolExecutor(len(lowered)) as pool:
-            self._prologue, self._window, self._epilogue = pool.map(
+            self._prologue, self._forward, self._backward, self._epilogue = pool.map(
                 lambda x: x.compile(), lowered)
         release_freed_memory()
 
     def __call__(self, state: TrainState, batch: Batch) -> tuple[TrainState, dict]:
-        maps, map_gates, scenes, acc = self._prologue(state, batch)
+        maps, map_gates, scenes, carry, g_params, g_map, no_grad = self._prologue(state, batch)
         terms = []
-        for index in range(self._windows):
-            acc, t = self._window(state.params, map_gates, scenes, acc, index)
-            terms.append(t)
-        return self._epilogue(state, maps, scenes, acc, terms)
+        for starts in self._starts:
+            vjps = []
+            for start in starts:
+                carry, t, vjp = self._forward(state.params, map_gates, scenes, carry, start)
+                terms.append(t)
+                vjps.append(vjp)
+            g_carry = no_grad  # truncated BPTT: no gradient from the next window
+            for vjp in reversed(vjps):
+                g_params, g_map, g_carry = self._backward(vjp, g_carry, g_params, g_map)
+        return self._epilogue(state, maps, scenes, g_params, g_map, terms)
 
 
 class QuickStartTrainStep:
