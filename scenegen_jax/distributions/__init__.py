@@ -19,10 +19,12 @@ from scenegen_jax.distributions.categorical import (
     location_log_prob,
     masked_location_log_prob,
     masked_log_softmax,
+    offsets_in_bin,
     ordering_mask,
     sample_bins,
     sample_class,
     sample_location,
+    uniforms,
 )
 from scenegen_jax.distributions.mixtures import (
     box_log_prob,
@@ -74,6 +76,7 @@ __all__ = [
     "masked_location_log_prob",
     "masked_log_softmax",
     "num_mixtures",
+    "offsets_in_bin",
     "ordering_mask",
     "sample_bins",
     "sample_box",
@@ -85,6 +88,7 @@ __all__ = [
     "split_heading",
     "split_velocity",
     "term_masks",
+    "uniforms",
     "velocity_log_prob",
     "velocity_proposal_score",
     "velocity_params_size",

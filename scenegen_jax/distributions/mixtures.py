@@ -17,6 +17,7 @@ import jax.numpy as jnp
 from jax.scipy import special
 
 from scenegen_jax.distributions import params as P
+from scenegen_jax.distributions.categorical import gumbel_argmax, uniforms
 from scenegen_jax.scene import wrap_angle
 
 LOG_2PI = math.log(2.0 * math.pi)
@@ -61,9 +62,10 @@ def _sample_vonmises(key: jax.Array, direction: jnp.ndarray, log_kappa: jnp.ndar
     return distrax.VonMises(loc, jnp.exp(log_kappa)).sample(seed=key)
 
 
-def _pick(key: jax.Array, logits: jnp.ndarray, tree):
-    """Draws a component index from `logits` [K] and gathers it from every leaf [K, ...]."""
-    k = jax.random.categorical(key, logits)
+def _pick(u: jnp.ndarray, logits: jnp.ndarray, tree):
+    """Draws a component index from `logits` [K] with uniforms `u` [K] (`gumbel_argmax`) and
+    gathers it from every leaf [K, ...]."""
+    k = gumbel_argmax(u, logits)
     return k, jax.tree_util.tree_map(lambda x: x[k], tree)
 
 
@@ -95,10 +97,11 @@ def box_log_prob(raw: jnp.ndarray, size: jnp.ndarray) -> jnp.ndarray:
 def sample_box(key: jax.Array, raw: jnp.ndarray) -> jnp.ndarray:
     """Draws a box size [2] (width, length), m, from the mixture `raw` [6K]."""
     box = P.split_box(raw)
-    k_comp, k_eps = jax.random.split(key)
-    _, (mu, log_var, rho) = _pick(k_comp, box.logits, (box.mu, box.log_var, box.rho))
+    k = box.logits.shape[0]
+    u = uniforms(key, (k + 2,))  # the component's Gumbel noise, then two normals
+    _, (mu, log_var, rho) = _pick(u[:k], box.logits, (box.mu, box.log_var, box.rho))
     sd = jnp.exp(0.5 * log_var)
-    e = jax.random.normal(k_eps, (2,))
+    e = special.ndtri(u[k:])
     z = jnp.stack(
         [mu[0] + sd[0] * e[0], mu[1] + sd[1] * (rho * e[0] + jnp.sqrt(1.0 - rho**2) * e[1])]
     )
@@ -117,7 +120,8 @@ def sample_heading(key: jax.Array, raw: jnp.ndarray) -> jnp.ndarray:
     """Draws a heading, rad in [0, 2pi), from the von Mises mixture `raw` [4K]."""
     vm = P.split_heading(raw)
     k_comp, k_vm = jax.random.split(key)
-    _, (direction, log_kappa) = _pick(k_comp, vm.logits, (vm.direction, vm.log_kappa))
+    _, (direction, log_kappa) = _pick(uniforms(k_comp, vm.logits.shape), vm.logits,
+                                      (vm.direction, vm.log_kappa))
     return wrap_angle(_sample_vonmises(k_vm, direction, log_kappa))
 
 
@@ -191,15 +195,14 @@ def velocity_proposal_score(
     return lp + jnp.log(jnp.maximum(speed_sq, tiny))
 
 
-def _sample_std_normal_above(key: jax.Array, a: jnp.ndarray) -> jnp.ndarray:
-    """One standard normal draw conditioned on z > a (inverse CDF; Rayleigh tail for a > 8)."""
-    k_u, k_e = jax.random.split(key)
+def _sample_std_normal_above(u: jnp.ndarray, a: jnp.ndarray) -> jnp.ndarray:
+    """One standard normal draw conditioned on z > a (inverse CDF; Rayleigh tail for a > 8)
+    from two uniforms `u` [2] in (0, 1)."""
     tiny = jnp.finfo(jnp.float32).tiny
-    u = jax.random.uniform(k_u, (), minval=tiny, maxval=1.0)
     a_in = jnp.minimum(a, _TAIL_SWITCH)
-    z_inv = -special.ndtri(jnp.maximum(u * special.ndtr(-a_in), tiny))
+    z_inv = -special.ndtri(jnp.maximum(u[0] * special.ndtr(-a_in), tiny))
     z_inv = jnp.maximum(z_inv, a_in)
-    e = jax.random.exponential(k_e, ())
+    e = -jnp.log(u[1])  # a standard exponential
     a_tail = jnp.maximum(a, _TAIL_SWITCH)
     z_tail = jnp.sqrt(a_tail * a_tail + 2.0 * e)
     return jnp.where(a > _TAIL_SWITCH, z_tail, z_inv)
@@ -219,13 +222,15 @@ def sample_velocity(
     `relative`. This is the measure scored by `velocity_log_prob`.
     """
     vp = P.split_velocity(raw)
-    k_comp, k_speed, k_dir = jax.random.split(key, 3)
-    comp = jax.random.categorical(k_comp, vp.logits)
+    k_u, k_dir = jax.random.split(key)
+    k = vp.logits.shape[0]
+    u = uniforms(k_u, (k + 2,))  # the component's Gumbel noise, then the speed's two
+    comp = gumbel_argmax(u[:k], vp.logits)
     j = jnp.maximum(comp - 1, 0)
     mu, log_sigma = vp.speed_mu[j], vp.speed_log_sigma[j]
     sigma = jnp.exp(log_sigma)
     a = (_log_zero_speed(zero_speed) - mu) / sigma
-    log_s = mu + sigma * _sample_std_normal_above(k_speed, a)
+    log_s = mu + sigma * _sample_std_normal_above(u[k:], a)
     speed = jnp.exp(jnp.clip(log_s, *SAMPLE_LOG_RANGE))
     # Keep float32 rounding from landing a moving draw on the stationary side of the cut.
     speed = jnp.maximum(speed, jnp.asarray(zero_speed, speed.dtype) * (1.0 + 1e-5))

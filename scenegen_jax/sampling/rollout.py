@@ -64,9 +64,11 @@ from jax import lax
 from scenegen_jax.config import Config
 from scenegen_jax.distributions import (
     masked_log_softmax,
+    offsets_in_bin,
     ordering_mask,
     sample_bins,
     sample_class,
+    uniforms,
 )
 from scenegen_jax.model.network import map_at_bins
 from scenegen_jax.raster.actors import draw_actor, empty_actor_raster
@@ -88,8 +90,6 @@ DEFAULT_CANDIDATES = 8
 DEFAULT_ROUNDS = 4
 # The steps whose location distributions the paper's Figure 7 shows.
 HEATMAP_STEPS = (0, 5, 10, 15, 20)
-# Positions stay this fraction of a bin inside it (as in `distributions.sample_location`).
-_EDGE = 1e-4
 
 @dataclasses.dataclass(frozen=True)
 class SamplerOptions:
@@ -204,8 +204,7 @@ def _candidates(key, params, model: Model, f, map_raster, cls, log_probs, cfg: C
     from the features f [1, H, W, h] and map channels map_raster [1, H, W, Cm] at the bins."""
     k_bin, k_pos, k_attr = jax.random.split(key, 3)
     bins = sample_bins(k_bin, log_probs, count, cfg.grid_size)
-    u = jax.random.uniform(k_pos, (count, 2), minval=_EDGE, maxval=1.0 - _EDGE)
-    position = bin_center(bins, cfg) + (u - 0.5) * cfg.m_per_px
+    position = bin_center(bins, cfg) + offsets_in_bin(uniforms(k_pos, (count, 2)), cfg)
     feat = f[0].reshape(-1, f.shape[-1])[bins]  # [R, hidden]
     classes = jnp.full((count,), cls, jnp.int32)
     box_raw, heading_raw, velocity_raw = model.attributes(
