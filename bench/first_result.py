@@ -14,7 +14,8 @@ split step on XLA:CPU, the one-program step compiling behind it as in a run of 1
 and one step on a fresh state of the preset, on a batch of its size; for scoring and sampling, the
 model loaded from a model directory as `scenegen score|sample --pretrained DIR` loads it (those
 commands never draw initial parameters), then the scorer's compiled call on the `score`
-command's default batch (8 scenes, one call per core), or `sample_scenes` on 8 maps. The
+command's default batch (8 scenes, one call per core), or `sample_scenes` on 8 maps (cropped
+one at a time as `scenegen sample` crops them). The
 directory comes from `export` in an earlier process (not timed): the preset's initial
 parameters with the stop logit lowered as in `run.py`'s sampling case, so that sampled scenes
 fill rather than stop at once. Synthetic scenes (`synthetic.py`): the shapes, not the data,
@@ -74,13 +75,13 @@ def export_model(config: str, grid: int, model: str) -> None:
 def ours(kind: str, config: str, grid: int, model: str | None) -> dict:
     os.environ["JAX_ENABLE_COMPILATION_CACHE"] = "false"
     import jax
+    import numpy as np
 
     jax.config.update("jax_enable_compilation_cache", False)
     from synthetic import synthetic_batch
 
     from scenegen_jax.backend import concurrent_map, default_workers, scoring_compiler_options
     from scenegen_jax.eval.nll import score_batch
-    from scenegen_jax.likelihood.batch import crop_batch
     from scenegen_jax.pretrained import load_pretrained
     from scenegen_jax.train.step import first_train_step, init_state
 
@@ -113,12 +114,15 @@ def ours(kind: str, config: str, grid: int, model: str | None) -> dict:
         jax.block_until_ready(list(concurrent_map(lambda x: score(params, x), parts, workers)))
         out.update(batch=b, workers=workers)
     else:
+        from scenegen_jax.raster.transform import crop_map
         from scenegen_jax.sampling import sample_scenes
 
         b = 1 if cfg.name == "paper" else BATCH
         host = synthetic_batch(cfg, b, 0, seed=2)
-        maps, scenes = crop_batch(host, jax.numpy.zeros(b), cfg)
-        s = sample_scenes(jax.random.key(0), params, cfg, maps, scenes.ego)
+        # Maps cropped one at a time, unrotated, as `scenegen sample` does (`sample_on_cache`).
+        crop = jax.jit(crop_map, static_argnums=2)
+        maps = np.stack([np.asarray(crop(jax.numpy.asarray(c), 0.0, cfg)) for c in host.canvas])
+        s = sample_scenes(jax.random.key(0), params, cfg, maps, host.ego)
         jax.block_until_ready(s.actors.valid)
         out["batch"] = b
     out["first_result_s"] = process_age_s()
