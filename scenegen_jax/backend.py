@@ -2,8 +2,8 @@
 
 What differs between XLA:CPU and accelerators: which loops are compiled (XLA:CPU runs
 convolution gradients inside loops many times slower), how large convolutions take their
-weight gradients, how training starts (on the train step split into window programs while
-the one-program step compiles), the compiler options of the parameter initialisation, the
+weight gradients, how training starts (on the train step split into programs of a few steps
+while the one-program step compiles), the compiler options of the parameter initialisation, the
 train step, the scorer and the sampler, how many calls run at once and how many scenes are
 vmapped together, the device mesh, and returning the compiler's freed host memory. Also where
 a multi-process job starts and which process writes.
@@ -163,7 +163,7 @@ SPLIT_CHUNK_STEPS = 5
 
 
 def quick_start_training() -> bool:
-    """Whether training starts on the train step split into window programs
+    """Whether training starts on the train step split into programs of a few steps
     (`train.step.QuickStartTrainStep`): on XLA:CPU, whose one-program step unrolls every
     window and compiles for tens of seconds before the first step (bench/README.md). On
     accelerators the windows already run as a compiled loop."""

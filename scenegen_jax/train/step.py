@@ -259,8 +259,8 @@ class QuickStartTrainStep:
     """A train step that starts on `SplitTrainStep` and, for runs of more than
     `backend.QUICK_START_STEPS` steps, compiles the one-program step (`compile_train_step`)
     on a background thread and uses it from the first step after it is ready. The first
-    step comes after the split programs' compile, about half the one-program step's on
-    XLA:CPU (bench/README.md). `close` waits for a background compile still running."""
+    step comes after the split programs' compile, a third to a half of the one-program step's
+    on XLA:CPU (bench/README.md). `close` waits for a background compile still running."""
 
     def __init__(self, cfg: Config, state: TrainState, batch: Batch, mesh: Mesh | None,
                  steps: int):
