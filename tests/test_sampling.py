@@ -143,19 +143,18 @@ def test_sample_attributes_keeps_the_most_likely_of_m_proposals():
 
     @jax.jit
     def reference(keys, box, heading, velocity, relative):
-        def best(k, sample, score, p):  # the most likely of m draws, written out
-            draws = jax.vmap(lambda kk: sample(kk, p))(jax.random.split(k, m))
+        def best(ks, sample, score, p):  # the most likely of m draws, written out
+            draws = jax.vmap(lambda kk: sample(kk, p))(ks)
             return draws[jnp.argmax(jax.vmap(lambda d: score(p, d))(draws))]
 
         def one(k, b, h, v, rel):
-            k_box, k_head, k_vel = jax.random.split(k, 3)
-            size = sample_box(k_box, b)  # one draw: the paper's best-of-M skips the box
-            head = best(k_head, sample_heading, heading_log_prob, h)
+            ks = jax.random.split(k, 1 + 2 * m)  # the box's, M heading, M velocity keys
+            size = sample_box(ks[0], b)  # one draw: the paper's best-of-M skips the box
+            head = best(ks[1 : 1 + m], sample_heading, heading_log_prob, h)
             # Velocity: the first proposal decides standing vs moving; a moving actor keeps
             # its best moving proposal.
             zero = TINY.zero_speed
-            vels = jax.vmap(lambda kk: sample_velocity(kk, v, head, rel, zero))(
-                jax.random.split(k_vel, m))
+            vels = jax.vmap(lambda kk: sample_velocity(kk, v, head, rel, zero))(ks[1 + m :])
             moving = jnp.hypot(vels[:, 0], vels[:, 1]) > zero
             score = jax.vmap(lambda x: velocity_proposal_score(v, x, head, rel, zero))(vels)
             pick = jnp.where(moving[0], jnp.argmax(jnp.where(moving, score, -jnp.inf)), 0)

@@ -23,11 +23,13 @@ def best_of_m(
     `score_fn(params, draw)` its scalar score (a log-likelihood; bind extra arguments with a
     lambda, and put per-example ones into `params`). The R x M draws run as ONE flat vmap
     (nesting a vmap over M inside one over R doubled XLA:CPU's compile time of the sampler).
-    Example r splits keys[r] into its M proposal keys. NaN scores never win; ties keep the
-    first draw; with m = 1 the single draw is returned unscored (plain sampling).
+    Example r splits keys[r] into its M proposal keys (or takes keys[r] [M] as they are).
+    NaN scores never win; ties keep the first draw; with m = 1 the single draw is returned
+    unscored (plain sampling).
 
     Args:
-      keys: [R] PRNG keys.
+      keys: [R] PRNG keys, or [R, M] proposal keys (one split for several attributes: each
+        `jax.random` call compiles its own hash loop, `distributions.uniforms`).
       sample_fn: per-example sampler.
       score_fn: per-example score of a draw.
       params: PyTree of distribution parameters with leading axis R (e.g. raw head outputs).
@@ -41,7 +43,9 @@ def best_of_m(
     if m < 1:
         raise ValueError(f"best_of_m needs m >= 1, got {m}")
     r = keys.shape[0]
-    proposal_keys = jax.vmap(lambda k: jax.random.split(k, m))(keys).reshape(r * m)
+    if keys.ndim == 1:
+        keys = jax.vmap(lambda k: jax.random.split(k, m))(keys)
+    proposal_keys = keys.reshape(r * m)
     flat = jax.tree.map(lambda x: jnp.repeat(x, m, axis=0), params)  # proposals adjacent
     draws = jax.vmap(sample_fn)(proposal_keys, flat)
     if m == 1:

@@ -48,8 +48,8 @@ def sample_attributes(
     of its moving proposals. The velocity is drawn given the chosen heading (its direction
     is relative to it for vehicles and bicyclists).
     Heading and velocity are each one `distributions.best_of_m` call over the R actors. Keys:
-    actor r splits keys[r] into (box, heading, velocity) keys; the last two are each split
-    into M proposal keys. With M = 1 every attribute is one plain draw.
+    actor r splits keys[r] into 1 + 2M keys: the box's, then M heading and M velocity
+    proposal keys. With M = 1 every attribute is one plain draw.
 
     Pedestrians get the nominal square box (`cfg.pedestrian_size_m`) and the velocity
     direction as heading (0 when standing). Outputs are clamped and made finite (see the
@@ -66,9 +66,10 @@ def sample_attributes(
       (size [R, 2] (width, length) m, heading [R] rad in [0, 2pi), velocity [R, 2] m/s).
     """
     zero = cfg.zero_speed
-    sub = jax.vmap(lambda k: jax.random.split(k, 3))(keys)  # [R, 3]: box, heading, velocity
+    m = proposals
+    sub = jax.vmap(lambda k: jax.random.split(k, 1 + 2 * m))(keys)  # box, M heading, M velocity
     size = jax.vmap(sample_box)(sub[:, 0], box_raw)
-    heading = best_of_m(sub[:, 1], sample_heading, heading_log_prob, heading_raw, proposals)
+    heading = best_of_m(sub[:, 1 : 1 + m], sample_heading, heading_log_prob, heading_raw, m)
     heading = jnp.nan_to_num(heading, nan=0.0, posinf=0.0, neginf=0.0)
 
     def standing_first(vels, score):  # the first proposal decides standing or moving
@@ -78,11 +79,11 @@ def sample_attributes(
                          jnp.where(first, 0.0, -jnp.inf))
 
     velocity = best_of_m(
-        sub[:, 2],
+        sub[:, 1 + m :],
         lambda k, p: sample_velocity(k, p[0], p[1], p[2], zero),
         lambda p, v: velocity_proposal_score(p[0], v, p[1], p[2], zero),
         (velocity_raw, heading, is_relative_direction(cls)),
-        proposals,
+        m,
         adjust=standing_first,
     )
     velocity = jnp.nan_to_num(velocity, nan=0.0, posinf=0.0, neginf=0.0)
