@@ -329,11 +329,11 @@ def rollout(
     map_gates = model.map_gates(params, map_raster)
     raster = draw_actor(empty_actor_raster(cfg), ego, True, cfg)
 
-    def step(state: SamplerState, first: bool = False) -> SamplerState:
+    def step(state: SamplerState) -> SamplerState:
         t = state.count
         k_class, k_place = jax.random.split(jax.random.fold_in(key, t))
         gates = map_gates + state.actor_gates + model.order_gates(params, state.prev_bin[None])
-        lstm, h = model.recur(params, None if first else state.lstm, gates)
+        lstm, h = model.recur(params, state.lstm, gates)
         f = model.features(params, h)
 
         logits = model.class_logits(params, f)[0]
@@ -402,8 +402,9 @@ def rollout(
         heatmaps=jnp.zeros((steps.shape[0], n_bins), jnp.float32),
         heatmap_cls=jnp.full((steps.shape[0],), -1, jnp.int32),
     )
-    if n > 0:  # step 0 before the loop: from the zero state, without its convolutions
-        init = step(init, first=True)
+    # Every step in the loop, the first from the zero state with its (zero) recurrent
+    # convolutions: a first step of its own skipped them but compiled the step twice, 40 % of
+    # the sampler's compile time (bench/README.md, session 26).
     final = lax.while_loop(lambda s: jnp.logical_not(s.done), step, init)
     return Sample(
         actors=final.actors,
