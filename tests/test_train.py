@@ -218,17 +218,18 @@ def test_split_train_step_equals_the_one_program_step(tiny_train_cache, small_sc
 
 def test_quick_start_swaps_in_the_one_program_step_once_compiled(monkeypatch):
     """`QuickStartTrainStep` runs the split step until the background compile of the
-    one-program step is done, then that one; runs of at most QUICK_START_STEPS steps never
-    start the background compile; `close` waits for it. (Stand-ins for both steps: the
-    logic, not the compiler.)"""
+    one-program step, started after the first step, is done, then that one; runs of at most
+    QUICK_START_STEPS steps never start the background compile; `close` waits for it.
+    (Stand-ins for both steps: the logic, not the compiler.)"""
     import threading
 
     from scenegen_jax.backend import QUICK_START_STEPS
     from scenegen_jax.train import step as step_module
 
-    release = threading.Event()
+    release, started = threading.Event(), threading.Event()
 
     def compile_fused(*args):
+        started.set()
         release.wait(timeout=30)
         return lambda state, batch: ("fused", state)
 
@@ -241,6 +242,9 @@ def test_quick_start_swaps_in_the_one_program_step_once_compiled(monkeypatch):
     short.close()
     assert short(state, batch)[0] == "split"  # no background compile at all
     quick = step_module.QuickStartTrainStep(CFG, state, batch, None, QUICK_START_STEPS + 1)
+    assert not started.is_set()  # not beside the first step
+    assert quick(state, batch)[0] == "split"
+    assert started.wait(timeout=30)
     assert quick(state, batch)[0] == "split"  # still compiling
     release.set()
     quick.close()
