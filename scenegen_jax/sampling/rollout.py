@@ -403,8 +403,8 @@ def rollout(
         heatmap_cls=jnp.full((steps.shape[0],), -1, jnp.int32),
     )
     # Every step in the loop, the first from the zero state with its (zero) recurrent
-    # convolutions: a first step of its own skipped them but compiled the step twice, 40 % of
-    # the sampler's compile time (bench/README.md, session 26).
+    # convolutions: a first step of its own skipped them but compiled the step twice (the
+    # `cpu` sampler compiled in 8.4 s instead of 6.6; bench/README.md, session 26).
     final = lax.while_loop(lambda s: jnp.logical_not(s.done), step, init)
     return Sample(
         actors=final.actors,
