@@ -10,7 +10,8 @@ run shows any progress. One measurement per process; prints one `RESULT {json}` 
 
 Ours runs what the command line runs for the first batch of a preset as it ships (`tiny`,
 `cpu`; `paper` at `--grid`, T 25, B 1, the reference's shape): `first_train_step` (the
-split step on XLA:CPU, the one-program step compiling behind it as in a run of 1,000 steps)
+split step on XLA:CPU; the one-program step starts compiling once the first step is done,
+as in a run of 1,000 steps)
 and one step on a fresh state of the preset, on a batch of its size; for scoring and sampling, the
 model loaded from a model directory as `scenegen score|sample --pretrained DIR` loads it (those
 commands never draw initial parameters), then the scorer's compiled call on the `score`
