@@ -1,0 +1,85 @@
+"""Where sampled vehicles point, by heading bin (issue 21: why SceneGen loses the heading MMD on
+womd_mini val although its vehicles on lanes are aligned with them).
+
+`scenegen evaluate`'s protocol on `--num` scenes spread over the caches (the same conditioning
+scenes, baselines and SceneGen samples at the model's temperature): for the real scenes and each
+method, the mean of the per-scene heading histograms over vehicles (`eval.mmd`'s 16 bins of
+22.5 degrees relative to the ego; bin 0 = the ego's direction, 8 = oncoming), then, for the
+vehicles within 40 m in each bin, their share, the share standing on a lane and the share on
+the drivable area (as `eval.realism`). One JSON line.
+
+  .venv/bin/python experiments/sampled_headings.py --pretrained cpu-av2-womd \
+      --data runs/cache_cpu_womdjson_val runs/cache_cpu_womdpkl_val \
+      --train-data runs/cache_cpu_womdjson_train runs/cache_cpu_womdpkl_train --num 64
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+
+from scenegen_jax.cli.common import add_model_args, load_model, location_temperature
+from scenegen_jax.data.cache import cached_scene
+from scenegen_jax.data.union import load_union
+from scenegen_jax.eval import evaluate as ev
+from scenegen_jax.eval.mmd import HEADING_BINS, HEADING_WIDTH, scene_histograms
+from scenegen_jax.eval.realism import _vehicle_pixels
+from scenegen_jax.raster.map import ALL_MAP_CHANNELS, ORIENTATION_CHANNELS
+from scenegen_jax.sampling import SamplerOptions
+
+RADIUS_M = 40.0
+
+
+def bin_table(canvases, scenes, cfg) -> dict:
+    """Per heading bin: share of the vehicles within RADIUS_M, and of those the share on a
+    lane and on the drivable area."""
+    lane_ch = [ALL_MAP_CHANNELS.index(c) for c in ORIENTATION_CHANNELS]
+    drivable_ch = ALL_MAP_CHANNELS.index("drivable_area")
+    bins, lane, drivable = [], [], []
+    for canvas, actors in zip(canvases, scenes, strict=True):
+        row, col, slots, _ = _vehicle_pixels(canvas, actors, cfg, RADIUS_M)
+        rel = np.mod(np.asarray(actors.heading, np.float64)[slots] + 0.5 * HEADING_WIDTH,
+                     2 * np.pi)
+        bins.append(np.minimum((rel // HEADING_WIDTH).astype(int), HEADING_BINS - 1))
+        lane.append(np.hypot(*(canvas[row, col, c] for c in lane_ch)) > 0.5)
+        drivable.append(canvas[row, col, drivable_ch] > 0.5)
+    bins, lane, drivable = (np.concatenate(x) for x in (bins, lane, drivable))
+    out = {"vehicles": len(bins)}
+    for b in range(HEADING_BINS):
+        m = bins == b
+        out[str(b)] = [round(float(m.mean()), 3), round(float(lane[m].mean()), 2) if m.any()
+                       else None, round(float(drivable[m].mean()), 2) if m.any() else None]
+    return out
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_model_args(p)
+    p.add_argument("--data", required=True, nargs="+")
+    p.add_argument("--train-data", required=True, nargs="+")
+    p.add_argument("--num", type=int, default=64)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--location-temperature", type=float)
+    args = p.parse_args()
+    cfg, params, step, sampler = load_model(args)
+    cache, train = load_union(args.data, cfg), load_union(args.train_data, cfg)
+    indices = np.linspace(0, len(cache) - 1, min(args.num, len(cache))).astype(int)
+    maps, scenes = ev.real_scenes(cache, indices, cfg)
+    methods = ev.sample_baselines(cfg, cache, indices, train, args.seed)
+    options = SamplerOptions(location_temperature=location_temperature(args, sampler))
+    methods["SceneGen"] = ev.sample_scenegen(params, cfg, maps, scenes, args.seed,
+                                             options=options)
+    methods = {"real": [s.actors for s in scenes], **methods}
+    canvases = [np.asarray(cached_scene(cache, int(i), cfg)[0]) for i in indices]
+    report = {"step": step, "data": args.data, "columns": "share, on lane, on drivable"}
+    for name, sets in methods.items():
+        hist = scene_histograms(sets, "vehicle", cfg.region_m)["heading"].mean(0)
+        report[name] = {"mean_histogram": [round(float(x), 3) for x in hist],
+                        "bins": bin_table(canvases, sets, cfg)}
+    print(json.dumps(report))
+
+
+if __name__ == "__main__":
+    main()
