@@ -6,8 +6,8 @@ For every real vehicle of `--num` scenes spread over the cache, the mode of the 
 heading mixture at that vehicle (given the real earlier actors, unrotated; the mode on a
 1,440-angle grid, 0.25 degrees) against the vehicle's real heading; and, for the vehicles whose
 centre lies on a lane (the lane orientation channels at its pixel longer than 0.5, as
-`eval.realism.lane_offsets`), the real heading and the mode against the lane's direction.
-Quartiles and the 90th percentile, degrees. The best of M sampled headings lands near the
+`eval.realism.lane_offsets`), the real heading and the mode against the lane's direction;
+for the vehicles off every lane, the mode against the real heading. Quartiles and the 90th percentile, degrees. The best of M sampled headings lands near the
 mode, so the mode's offset from the lane is what a sample shows (`scenegen evaluate`'s
 "median offset of the aligned").
 
@@ -27,10 +27,10 @@ import numpy as np
 from scenegen_jax.cli.common import add_model_args, load_model
 from scenegen_jax.data.cache import load_cache
 from scenegen_jax.distributions.mixtures import heading_log_prob
-from scenegen_jax.eval.realism import lane_offsets
+from scenegen_jax.eval.realism import _vehicle_pixels, lane_offsets
 from scenegen_jax.likelihood import unroll
 from scenegen_jax.likelihood.batch import crop_batch, gather_batch
-from scenegen_jax.raster.map import ALL_MAP_CHANNELS
+from scenegen_jax.raster.map import ALL_MAP_CHANNELS, ORIENTATION_CHANNELS
 from scenegen_jax.scene import VEHICLE
 
 ANGLES = jnp.linspace(0.0, 2 * jnp.pi, 1440, endpoint=False)
@@ -57,7 +57,8 @@ def heading_modes(params, cfg, maps, scene) -> np.ndarray:
 
 def heading_check(params, cfg, cache, num: int, batch: int = 8) -> dict:
     indices = np.linspace(0, len(cache) - 1, min(num, len(cache))).astype(int)
-    to_mode, real_lane, mode_lane = [], [], []
+    to_mode, real_lane, mode_lane, off_lane = [], [], [], []
+    lane_ch = [ALL_MAP_CHANNELS.index(c) for c in ORIENTATION_CHANNELS]
     for start in range(0, len(indices), batch):
         chunk = indices[start : start + batch]
         maps, scene = crop_batch(gather_batch(cache, chunk, cfg), jnp.zeros(len(chunk)),
@@ -72,6 +73,10 @@ def heading_check(params, cfg, cache, num: int, batch: int = 8) -> dict:
             off = np.angle(np.exp(1j * (modes[b] - one.heading)))[vehicles]
             to_mode.extend(np.degrees(np.abs(off)).tolist())
             canvas = canvases[b]  # every map channel (checked in main)
+            row, col, slots, _ = _vehicle_pixels(canvas, one, cfg, np.inf)
+            lanes = np.hypot(*(canvas[row, col, c] for c in lane_ch)) > 0.5
+            off = np.angle(np.exp(1j * (modes[b] - one.heading)))[slots[~lanes]]
+            off_lane.extend(np.degrees(np.abs(off)).tolist())
             real_lane.extend(lane_offsets(canvas, one, cfg, np.inf).tolist())
             moded = one.replace(heading=modes[b].astype(one.heading.dtype))
             mode_lane.extend(lane_offsets(canvas, moded, cfg, np.inf).tolist())
@@ -81,7 +86,8 @@ def heading_check(params, cfg, cache, num: int, batch: int = 8) -> dict:
 
     return {"vehicles": len(to_mode), "mode_vs_real_deg_q25_50_75_90": q(to_mode),
             "vehicles_on_lane": len(real_lane), "real_vs_lane_deg": q(real_lane),
-            "mode_vs_lane_deg": q(mode_lane)}
+            "mode_vs_lane_deg": q(mode_lane), "vehicles_off_lanes": len(off_lane),
+            "mode_vs_real_off_lanes_deg": q(off_lane)}
 
 
 def main() -> None:
