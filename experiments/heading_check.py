@@ -7,9 +7,9 @@ heading mixture at that vehicle (given the real earlier actors, unrotated; the m
 1,440-angle grid, 0.25 degrees) against the vehicle's real heading; and, for the vehicles whose
 centre lies on a lane (the lane orientation channels at its pixel longer than 0.5, as
 `eval.realism.lane_offsets`), the real heading and the mode against the lane's direction;
-for the vehicles off every lane, the mode against the real heading. Quartiles and the 90th percentile, degrees. The best of M sampled headings lands near the
-mode, so the mode's offset from the lane is what a sample shows (`scenegen evaluate`'s
-"median offset of the aligned").
+for the vehicles off every lane, the mode against the real heading. Quartiles and the 90th
+percentile, degrees. The best of M sampled headings lands near the mode, so the mode's offset
+from the lane is what a sample shows (`scenegen evaluate`'s "median offset of the aligned").
 
   .venv/bin/python experiments/heading_check.py --pretrained cpu-av2-womd \
       --data runs/cache_cpu_womdjson_val --num 48
