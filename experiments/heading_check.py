@@ -27,10 +27,10 @@ import numpy as np
 from scenegen_jax.cli.common import add_model_args, load_model
 from scenegen_jax.data.cache import load_cache
 from scenegen_jax.distributions.mixtures import heading_log_prob
-from scenegen_jax.eval.realism import _vehicle_pixels, lane_offsets
+from scenegen_jax.eval.realism import lane_offsets, vehicle_cells
 from scenegen_jax.likelihood import unroll
 from scenegen_jax.likelihood.batch import crop_batch, gather_batch
-from scenegen_jax.raster.map import ALL_MAP_CHANNELS, ORIENTATION_CHANNELS
+from scenegen_jax.raster.map import ALL_MAP_CHANNELS
 from scenegen_jax.scene import VEHICLE
 
 ANGLES = jnp.linspace(0.0, 2 * jnp.pi, 1440, endpoint=False)
@@ -58,7 +58,6 @@ def heading_modes(params, cfg, maps, scene) -> np.ndarray:
 def heading_check(params, cfg, cache, num: int, batch: int = 8) -> dict:
     indices = np.linspace(0, len(cache) - 1, min(num, len(cache))).astype(int)
     to_mode, real_lane, mode_lane, off_lane = [], [], [], []
-    lane_ch = [ALL_MAP_CHANNELS.index(c) for c in ORIENTATION_CHANNELS]
     for start in range(0, len(indices), batch):
         chunk = indices[start : start + batch]
         maps, scene = crop_batch(gather_batch(cache, chunk, cfg), jnp.zeros(len(chunk)),
@@ -73,9 +72,8 @@ def heading_check(params, cfg, cache, num: int, batch: int = 8) -> dict:
             off = np.angle(np.exp(1j * (modes[b] - one.heading)))[vehicles]
             to_mode.extend(np.degrees(np.abs(off)).tolist())
             canvas = canvases[b]  # every map channel (checked in main)
-            row, col, slots, _ = _vehicle_pixels(canvas, one, cfg, np.inf)
-            lanes = np.hypot(*(canvas[row, col, c] for c in lane_ch)) > 0.5
-            off = np.angle(np.exp(1j * (modes[b] - one.heading)))[slots[~lanes]]
+            cells = vehicle_cells(canvas, one, cfg, np.inf)
+            off = np.angle(np.exp(1j * (modes[b] - one.heading)))[cells.slots[~cells.on_lane]]
             off_lane.extend(np.degrees(np.abs(off)).tolist())
             real_lane.extend(lane_offsets(canvas, one, cfg, np.inf).tolist())
             moded = one.replace(heading=modes[b].astype(one.heading.dtype))

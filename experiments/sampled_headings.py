@@ -25,8 +25,7 @@ from scenegen_jax.data.cache import cached_scene
 from scenegen_jax.data.union import load_union
 from scenegen_jax.eval import evaluate as ev
 from scenegen_jax.eval.mmd import HEADING_BINS, HEADING_WIDTH, scene_histograms
-from scenegen_jax.eval.realism import _vehicle_pixels
-from scenegen_jax.raster.map import ALL_MAP_CHANNELS, ORIENTATION_CHANNELS
+from scenegen_jax.eval.realism import vehicle_cells
 from scenegen_jax.sampling import SamplerOptions
 
 RADIUS_M = 40.0
@@ -35,16 +34,14 @@ RADIUS_M = 40.0
 def bin_table(canvases, scenes, cfg) -> dict:
     """Per heading bin: share of the vehicles within RADIUS_M, and of those the share on a
     lane and on the drivable area."""
-    lane_ch = [ALL_MAP_CHANNELS.index(c) for c in ORIENTATION_CHANNELS]
-    drivable_ch = ALL_MAP_CHANNELS.index("drivable_area")
     bins, lane, drivable = [], [], []
     for canvas, actors in zip(canvases, scenes, strict=True):
-        row, col, slots, _ = _vehicle_pixels(canvas, actors, cfg, RADIUS_M)
-        rel = np.mod(np.asarray(actors.heading, np.float64)[slots] + 0.5 * HEADING_WIDTH,
+        cells = vehicle_cells(canvas, actors, cfg, RADIUS_M)
+        rel = np.mod(np.asarray(actors.heading, np.float64)[cells.slots] + 0.5 * HEADING_WIDTH,
                      2 * np.pi)
         bins.append(np.minimum((rel // HEADING_WIDTH).astype(int), HEADING_BINS - 1))
-        lane.append(np.hypot(*(canvas[row, col, c] for c in lane_ch)) > 0.5)
-        drivable.append(canvas[row, col, drivable_ch] > 0.5)
+        lane.append(cells.on_lane)
+        drivable.append(cells.on_drivable)
     bins, lane, drivable = (np.concatenate(x) for x in (bins, lane, drivable))
     out = {"vehicles": len(bins)}
     for b in range(HEADING_BINS):

@@ -14,6 +14,7 @@ from scenegen_jax.eval.realism import (
     lane_offsets,
     overlapping_pairs,
     realism_stats,
+    vehicle_cells,
 )
 from scenegen_jax.raster.map import ALL_MAP_CHANNELS
 from scenegen_jax.scene import BICYCLIST, PEDESTRIAN, VEHICLE, Actors
@@ -68,6 +69,11 @@ def test_lane_alignment_and_drivable_share_hand_computed():
     assert drivable_share(_canvas(), actors, CFG) == (5, 6)
     # Only vehicles within the radius count: the second to fourth (0.71, 0.71, 1.58 m).
     assert drivable_share(_canvas(), actors, CFG, radius_m=2.0) == (3, 3)
+    cells = vehicle_cells(_canvas(), actors, CFG)  # the six vehicles, in slot order
+    np.testing.assert_array_equal(cells.slots, np.arange(6))
+    np.testing.assert_array_equal(cells.on_lane, [1, 1, 1, 1, 1, 0])
+    np.testing.assert_allclose(np.degrees(cells.lane_direction[:5]), [0, 0, 0, 0, 90],
+                               atol=1e-4)
 
 
 def test_overlapping_pairs_hand_computed():

@@ -5,6 +5,8 @@ SceneGen samples and both baselines on the same maps)."""
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import numpy as np
 
@@ -31,8 +33,20 @@ def _vehicle_pixels(canvas: np.ndarray, actors, cfg: Config, radius_m: float):
     return row[ok], col[ok], slots[ok], len(slots)
 
 
-def drivable_share(canvas: np.ndarray, actors, cfg: Config, radius_m: float = 40.0):
-    """(vehicle centres on the drivable area, vehicle centres counted) for one unrotated scene.
+class VehicleCells(NamedTuple):
+    """The map under the valid vehicles within a radius of the ego whose centre lies on the
+    canvas (`vehicle_cells`); arrays [n] over those vehicles."""
+
+    slots: np.ndarray  # int, the vehicles' slots in the scene's Actors
+    counted: int  # vehicles within the radius, some maybe beyond the canvas
+    on_drivable: np.ndarray  # bool, centre on the drivable area
+    on_lane: np.ndarray  # bool, the lane orientation channels there longer than 0.5
+    lane_direction: np.ndarray  # rad, the lane's direction in the ego frame (where on_lane)
+
+
+def vehicle_cells(canvas: np.ndarray, actors, cfg: Config, radius_m: float = 40.0):
+    """`VehicleCells` of one unrotated scene. The lane orientation channels hold the lane's
+    (cos, sin) direction in the ego frame, zero off every lane.
 
     Args:
       canvas: [S, S, len(ALL_MAP_CHANNELS)] map canvas of the scene (cache layout).
@@ -40,22 +54,28 @@ def drivable_share(canvas: np.ndarray, actors, cfg: Config, radius_m: float = 40
       cfg: config of the canvas (resolution).
       radius_m: only vehicles within this distance of the ego count.
     """
-    drivable = np.asarray(canvas[..., ALL_MAP_CHANNELS.index("drivable_area")], np.float32)
-    row, col, _, total = _vehicle_pixels(canvas, actors, cfg, radius_m)
-    return int((drivable[row, col] > 0.5).sum()), total
+    row, col, slots, counted = _vehicle_pixels(canvas, actors, cfg, radius_m)
+    drivable = np.asarray(canvas[row, col, ALL_MAP_CHANNELS.index("drivable_area")])
+    cos, sin = (np.asarray(canvas[row, col, ALL_MAP_CHANNELS.index(c)], np.float64)
+                for c in ORIENTATION_CHANNELS)
+    return VehicleCells(slots, counted, drivable > 0.5, np.hypot(cos, sin) > 0.5,
+                        np.arctan2(sin, cos))
+
+
+def drivable_share(canvas: np.ndarray, actors, cfg: Config, radius_m: float = 40.0):
+    """(vehicle centres on the drivable area, vehicle centres counted) for one unrotated scene;
+    arguments as `vehicle_cells`."""
+    cells = vehicle_cells(canvas, actors, cfg, radius_m)
+    return int(cells.on_drivable.sum()), cells.counted
 
 
 def lane_offsets(canvas: np.ndarray, actors, cfg: Config, radius_m: float = 40.0):
     """Angles (degrees, in [0, 180]) between the heading of each vehicle on a lane and the
-    lane's direction, for one unrotated scene; arguments as `drivable_share`. A vehicle is on
-    a lane where the lane orientation channels at its centre's pixel have length > 0.5 (they
-    hold the lane's (cos, sin) direction in the ego frame, zero off every lane)."""
-    ic, is_ = (ALL_MAP_CHANNELS.index(c) for c in ORIENTATION_CHANNELS)
-    row, col, slots, _ = _vehicle_pixels(canvas, actors, cfg, radius_m)
-    cos, sin = (np.asarray(canvas[row, col, i], np.float64) for i in (ic, is_))
-    on = np.hypot(cos, sin) > 0.5
-    heading = np.asarray(actors.heading, np.float64)[slots[on]]
-    return np.degrees(np.abs(np.angle(np.exp(1j * (heading - np.arctan2(sin[on], cos[on]))))))
+    lane's direction, for one unrotated scene; arguments as `vehicle_cells`."""
+    cells = vehicle_cells(canvas, actors, cfg, radius_m)
+    heading = np.asarray(actors.heading, np.float64)[cells.slots[cells.on_lane]]
+    direction = cells.lane_direction[cells.on_lane]
+    return np.degrees(np.abs(np.angle(np.exp(1j * (heading - direction)))))
 
 
 def lane_alignment(canvas: np.ndarray, actors, cfg: Config, radius_m: float = 40.0,
