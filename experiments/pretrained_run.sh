@@ -5,8 +5,14 @@
 # metrics.jsonl and the newest checkpoint only), pinned to one core so the other stays free.
 # The `cpu` preset (separate attribute MLPs since session 18) with pixel coordinates, the
 # canonical order's channel, the map at the actor's bin as an attribute input (first and last
-# layer), and a 50-step warm-up. It is the sixth phase of the model's training
-# (MODEL_CARD.md): session 25 started it from the fifth phase's step 425, the shipped model
+# layer), the nearest lane's direction as two more map channels (the `nearest_lane` layers),
+# and a 50-step warm-up. It is the seventh phase of the model's training (MODEL_CARD.md):
+# session 28 started it from the sixth phase's step 950 (`INIT_FROM=cpu-av2-womd`, the
+# shipped model then; the new channels' weights start at zero; metrics of the sixth phase
+# experiments/results/pretrained_run_decay_metrics.jsonl), with a cosine decay of the
+# learning rate to 0 over 550 steps after the warm-up and a new seed:
+#   INIT_FROM=cpu-av2-womd experiments/pretrained_run.sh 600 1
+# Session 25 started the sixth phase from the fifth phase's step 425, the shipped model
 # (`INIT_FROM=cpu-av2-womd`; the fifth phase went on to step 742 at a constant learning rate
 # and got worse on Argoverse 2 val, experiments/results/pretrained_run_skip_metrics.jsonl),
 # with a cosine decay of the learning rate to 0 over 900 steps after the warm-up, and a new
@@ -40,13 +46,13 @@ prep() {  # SOURCE ROOT SPLIT OUT [prepare options]
 prep av2 "$SHARED/av2_sensor_mini" train runs/cache_cpu_av2_train --stride 1
 prep womd_json "$SHARED/womd_mini/gpudrive_json" train runs/cache_cpu_womdjson_train
 prep scenarionet "$SHARED/womd_mini/scenarionet" train runs/cache_cpu_womdpkl_train
-# The sixth phase's schedule and seed, shared by both runs (equal steps and data order).
-PHASE="decay_steps=900 seed=6"
+# The no-map run's last phase (the sixth's schedule and seed); the seventh phase's.
 if [ -n "${NOMAP:-}" ]; then
-    WORKDIR=experiments/nomap_run INPUTS="map_layers=none $PHASE"
+    WORKDIR=experiments/nomap_run INPUTS="map_layers=none decay_steps=900 seed=6"
 else
     WORKDIR=experiments/pretrained_run
-    INPUTS="attribute_map_input=true attribute_map_skip=true $PHASE"
+    INPUTS="map_layers=lanes,drivable,crosswalks,nearest_lane attribute_map_input=true"
+    INPUTS="$INPUTS attribute_map_skip=true decay_steps=550 seed=7"
 fi
 XLA_FLAGS=--xla_cpu_multi_thread_eigen=false taskset -c "$CORE" $BIN/scenegen train \
     --config cpu --set coord_channels=true order_channel=true $INPUTS \

@@ -6,7 +6,9 @@ scenes, baselines and SceneGen samples at the model's temperature): for the real
 method, the mean of the per-scene heading histograms over vehicles (`eval.mmd`'s 16 bins of
 22.5 degrees relative to the ego; bin 0 = the ego's direction, 8 = oncoming), then, for the
 vehicles within 40 m in each bin, their share, the share standing on a lane and the share on
-the drivable area (as `eval.realism`). One JSON line.
+the drivable area (as `eval.realism`); and for the vehicles within 40 m off every lane, the
+share parallel to the nearest lane (its axis within 20 degrees of theirs: either direction) and
+the share perpendicular to it (more than 70 degrees; `nearest_lane` channels). One JSON line.
 
   .venv/bin/python experiments/sampled_headings.py --pretrained cpu-av2-womd \
       --data runs/cache_cpu_womdjson_val runs/cache_cpu_womdpkl_val \
@@ -51,6 +53,23 @@ def bin_table(canvases, scenes, cfg) -> dict:
     return out
 
 
+def off_lane_axes(canvases, scenes, cfg) -> dict:
+    """Of the vehicles within RADIUS_M off every lane and in range of the nearest lane: their
+    number, the share parallel to the nearest lane (axes within 20 degrees) and the share
+    perpendicular (more than 70 degrees)."""
+    axis = []
+    for canvas, actors in zip(canvases, scenes, strict=True):
+        cells = vehicle_cells(canvas, actors, cfg, RADIUS_M)
+        off = ~cells.on_lane & np.isfinite(cells.nearest_direction)
+        heading = np.asarray(actors.heading, np.float64)[cells.slots[off]]
+        diff = np.degrees(np.abs(np.angle(np.exp(1j * (heading - cells.nearest_direction[off])))))
+        axis.append(np.minimum(diff, 180.0 - diff))
+    axis = np.concatenate(axis)
+    share = (lambda m: round(float(m.mean()), 3)) if len(axis) else (lambda m: None)
+    return {"vehicles": len(axis), "parallel": share(axis < 20.0),
+            "perpendicular": share(axis > 70.0)}
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_model_args(p)
@@ -74,7 +93,8 @@ def main() -> None:
     for name, sets in methods.items():
         hist = scene_histograms(sets, "vehicle", cfg.region_m)["heading"].mean(0)
         report[name] = {"mean_histogram": [round(float(x), 3) for x in hist],
-                        "bins": bin_table(canvases, sets, cfg)}
+                        "bins": bin_table(canvases, sets, cfg),
+                        "off_lane": off_lane_axes(canvases, sets, cfg)}
     print(json.dumps(report))
 
 

@@ -25,8 +25,14 @@ LAYER_GROUPS: dict[str, tuple[str, ...]] = {
     ),
     "drivable": ("drivable_area",),
     "crosswalks": ("crosswalk",),
+    # Beyond the paper: the direction of the nearest lane centreline at every pixel, on and
+    # off the lanes (`raster.map.NEAREST_LANE_MAX_M`).
+    "nearest_lane": ("nearest_lane_cos", "nearest_lane_sin"),
 }
-ALL_LAYER_GROUPS: tuple[str, ...] = ("lanes", "drivable", "crosswalks")
+# Every group, in channel order: what a cache stores.
+ALL_LAYER_GROUPS: tuple[str, ...] = ("lanes", "drivable", "crosswalks", "nearest_lane")
+# The paper's map layers: the presets' default.
+PAPER_LAYER_GROUPS: tuple[str, ...] = ("lanes", "drivable", "crosswalks")
 
 
 # Fields that only training reads (the scorer and the sampler see `Config.inference()`).
@@ -42,7 +48,8 @@ class Config:
       name: preset name.
       grid_size: H = W of every raster, pixels.
       m_per_px: raster resolution, metres per pixel (region side = grid_size * m_per_px).
-      map_layers: layer groups rasterized as map channels (see `LAYER_GROUPS`).
+      map_layers: layer groups rasterized as map channels (see `LAYER_GROUPS`); the presets
+        take the paper's (`PAPER_LAYER_GROUPS`).
       max_actors: N, actor slots per scene (excluding the ego). A scene with more actors in
         the region keeps the first N in canonical order and has no stop token
         (`Scene.complete`).
@@ -119,7 +126,7 @@ class Config:
     name: str = "tiny"
     grid_size: int = 32
     m_per_px: float = 2.5
-    map_layers: tuple[str, ...] = ALL_LAYER_GROUPS
+    map_layers: tuple[str, ...] = PAPER_LAYER_GROUPS
     max_actors: int = 49
     hidden: int = 16
     backbone_layers: int = 5

@@ -5,11 +5,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scenegen_jax.config import get_config
+from scenegen_jax.config import ALL_LAYER_GROUPS, get_config
 from scenegen_jax.data.cache import cached_scene
-from scenegen_jax.raster.map import ALL_MAP_CHANNELS, rasterize_map, select_channels
+from scenegen_jax.raster.map import (
+    ALL_MAP_CHANNELS,
+    NEAREST_LANE_CHANNELS,
+    NEAREST_LANE_MAX_M,
+    rasterize_map,
+    select_channels,
+)
 from scenegen_jax.raster.transform import crop_map, scene_from_cached
-from scenegen_jax.scene import VEHICLE, pixel_of
+from scenegen_jax.scene import VEHICLE, pixel_centers, pixel_of
 from scenegen_jax.vector_map import Lane, VectorMap, rotation_matrix
 
 CH = {name: i for i, name in enumerate(ALL_MAP_CHANNELS)}
@@ -55,8 +61,39 @@ def test_lane_channels_orientation_and_marks():
     assert np.allclose(r2[r2[..., CH["lane_bike"]] > 0, CH["lane_orientation_cos"]], -1.0)
 
 
+def test_nearest_lane_points_along_the_nearest_centreline_up_to_its_range():
+    """Two lanes, one driven east at y = 0 and one driven north at x = 20: every pixel takes
+    the direction of the nearer centreline, on and off the lanes, and none farther than
+    `NEAREST_LANE_MAX_M` from both."""
+    east = _lane(-40, 10, 0.0)
+    ys = np.linspace(-40, 40, 5)
+    north = Lane(id=2, lane_type="VEHICLE", left=np.stack([np.full(5, 18.2), ys], 1),
+                 right=np.stack([np.full(5, 21.8), ys], 1))
+    size, res = 160, 1.0
+    r = rasterize_map(VectorMap(lanes=(east, north)), size, res)
+    xy = pixel_centers(get_config("tiny").replace(grid_size=size, m_per_px=res))
+    x, y = xy[..., 0], xy[..., 1]
+    # Distance to each centreline (segments from x = -40 to 10 at y = 0; x = 20, |y| <= 40).
+    d_east = np.hypot(x - np.clip(x, -40, 10), y)
+    d_north = np.hypot(x - 20, y - np.clip(y, -40, 40))
+    reach = np.minimum(d_east, d_north) <= NEAREST_LANE_MAX_M
+    clear = np.abs(d_east - d_north) > 1.0  # away from the ties between the two
+    cos, sin = r[..., CH["nearest_lane_cos"]], r[..., CH["nearest_lane_sin"]]
+    pick_east = reach & clear & (d_east < d_north)
+    pick_north = reach & clear & (d_north < d_east)
+    assert pick_east.sum() > 1000 and pick_north.sum() > 1000
+    np.testing.assert_allclose(cos[pick_east], 1.0, atol=1e-6)
+    np.testing.assert_allclose(sin[pick_east], 0.0, atol=1e-6)
+    np.testing.assert_allclose(sin[pick_north], 1.0, atol=1e-6)
+    far = np.minimum(d_east, d_north) > NEAREST_LANE_MAX_M + 1.0
+    assert far.sum() > 1000 and not np.any(cos[far]) and not np.any(sin[far])
+    # Inside the lanes it agrees with the lane orientation.
+    inside = r[..., CH["lane_vehicle"]] > 0
+    np.testing.assert_allclose(cos[inside], r[inside, CH["lane_orientation_cos"]], atol=1e-6)
+
+
 def test_rotated_vector_map_matches_rotated_canvas(all_frames):
-    cfg = get_config("cpu")
+    cfg = get_config("cpu", map_layers=ALL_LAYER_GROUPS)
     frame = all_frames["val"][0][40]
     canvas = rasterize_map(frame.map, cfg.canvas_size, cfg.m_per_px)
     theta = np.deg2rad(37.0)
@@ -74,6 +111,12 @@ def test_rotated_vector_map_matches_rotated_canvas(all_frames):
     cos_c = cropped[..., CH["lane_orientation_cos"]][lanes]
     cos_d = direct[..., CH["lane_orientation_cos"]][lanes]
     assert np.median(np.abs(cos_c - cos_d)) < 0.05
+    # The nearest lane's direction turns with the frame too, everywhere in its range.
+    for name in NEAREST_LANE_CHANNELS:
+        c = ALL_MAP_CHANNELS.index(name)
+        reach = np.abs(direct[..., c]) > 0
+        assert reach.mean() > 0.5
+        assert np.median(np.abs(cropped[..., c] - direct[..., c])[reach]) < 0.05
 
 
 def test_vehicles_keep_their_map_values_under_rotation(tiny_train_cache):

@@ -20,8 +20,9 @@ from scenegen_jax.raster.map import ALL_MAP_CHANNELS
 from scenegen_jax.scene import BICYCLIST, PEDESTRIAN, VEHICLE, Actors
 
 CFG = get_config("tiny").replace(m_per_px=1.0)  # 1 m pixels: pixel (row, col) is easy to name
-COS, SIN, DRIVABLE = (ALL_MAP_CHANNELS.index(c) for c in (
-    "lane_orientation_cos", "lane_orientation_sin", "drivable_area"))
+COS, SIN, DRIVABLE, NEAR_COS, NEAR_SIN = (ALL_MAP_CHANNELS.index(c) for c in (
+    "lane_orientation_cos", "lane_orientation_sin", "drivable_area", "nearest_lane_cos",
+    "nearest_lane_sin"))
 
 
 def _actors(rows):
@@ -40,11 +41,15 @@ def _actors(rows):
 
 def _canvas():
     """An 8 m x 8 m canvas (rows from y = 4 m down to y = -4 m): an eastbound lane in row 3
-    (0 < y <= 1 m), a northbound lane in column 6 (2 <= x < 3 m), drivable area on both."""
+    (0 < y <= 1 m), a northbound lane in column 6 (2 <= x < 3 m), drivable area on both; the
+    nearest lane points east except in column 6 (north) and at row 1, column 1 (none)."""
     canvas = np.zeros((8, 8, len(ALL_MAP_CHANNELS)), np.float32)
     canvas[3, :, COS] = 1.0
     canvas[:, 6, COS], canvas[:, 6, SIN] = 0.0, 1.0
     canvas[3, :, DRIVABLE] = canvas[:, 6, DRIVABLE] = 1.0
+    canvas[:, :, NEAR_COS] = 1.0
+    canvas[:, 6, NEAR_COS], canvas[:, 6, NEAR_SIN] = 0.0, 1.0
+    canvas[1, 1, NEAR_COS] = 0.0
     return canvas
 
 
@@ -74,6 +79,8 @@ def test_lane_alignment_and_drivable_share_hand_computed():
     np.testing.assert_array_equal(cells.on_lane, [1, 1, 1, 1, 1, 0])
     np.testing.assert_allclose(np.degrees(cells.lane_direction[:5]), [0, 0, 0, 0, 90],
                                atol=1e-4)
+    np.testing.assert_allclose(np.degrees(cells.nearest_direction),
+                               [0, 0, 0, 0, 90, np.nan], atol=1e-4)
 
 
 def test_overlapping_pairs_hand_computed():

@@ -11,6 +11,7 @@ import pytest
 
 from scenegen_jax.config import get_config
 from scenegen_jax.data.cache import cached_scene, load_cache
+from scenegen_jax.raster.map import ALL_MAP_CHANNELS
 from scenegen_jax.raster.transform import scene_from_cached
 from scenegen_jax.scene import (
     PEDESTRIAN,
@@ -81,7 +82,7 @@ def test_validate_names_the_field():
 def test_cache_scenes_are_valid_and_complete(tiny_train_cache):
     cache = tiny_train_cache
     assert len(cache) == 3 * 20  # every 8th of the 156 frames of each of the 3 train logs
-    assert cache.maps.shape[1:] == (CFG.canvas_size, CFG.canvas_size, 11)
+    assert cache.maps.shape[1:] == (CFG.canvas_size, CFG.canvas_size, len(ALL_MAP_CHANNELS))
     for index in range(0, len(cache), 5):
         canvas, actors, ego = cached_scene(cache, index, CFG)
         m, scene, overflow = jax.jit(lambda c, a, e, t: scene_from_cached(c, a, e, t, CFG))(

@@ -330,8 +330,9 @@ def test_init_from_reads_a_pretrained_model_or_names_what_it_is_not(tmp_path):
 
     params = init_state(CFG, seed=3).params
     save_pretrained(str(tmp_path / "model"), CFG, params, 7, "test")
-    for a, b in zip(jax.tree.leaves(start_params(str(tmp_path / "model"))),
-                    jax.tree.leaves(params), strict=True):
+    cfg, loaded = start_params(str(tmp_path / "model"))
+    assert cfg.map_channels == CFG.map_channels and cfg.hidden == CFG.hidden
+    for a, b in zip(jax.tree.leaves(loaded), jax.tree.leaves(params), strict=True):
         np.testing.assert_array_equal(a, b)
     with pytest.raises(FileNotFoundError, match="neither a workdir with checkpoints/ nor a "
                        "pretrained model .*installed"):
@@ -557,6 +558,43 @@ def test_orientation_bins_tell_lane_directions_apart_and_start_at_zero_from_a_wa
                                   method=SceneGenNet.map_gates)
     got = net.apply({"params": extended}, jnp.asarray(east), method=SceneGenNet.map_gates)
     np.testing.assert_array_equal(got, want)
+
+
+def test_a_new_map_layer_group_starts_at_zero_from_a_warm_start():
+    """Extended with the `nearest_lane` layers, a model keeps each old map channel's weights
+    (layer 1's convolution, the attribute MLPs' map weights) and gives the new channels zero:
+    on any map, its gates and attributes are the source's on the old channels. A source
+    trained with a channel the config lacks is refused by name."""
+    from scenegen_jax.train.loop import warm_start
+
+    old = CFG.replace(map_layers=("lanes", "drivable"), attribute_map_input=True,
+                      attribute_map_skip=True)
+    wide = old.replace(map_layers=("lanes", "drivable", "nearest_lane"))
+    assert wide.map_channels[-2:] == ("nearest_lane_cos", "nearest_lane_sin")
+    source = init_state(old, seed=1).params
+    params = warm_start(init_state(wide, seed=2).params, source, "src", wide.map_channels,
+                        old.map_channels)
+    keep = [wide.map_channels.index(c) for c in old.map_channels]
+    np.testing.assert_array_equal(np.asarray(params["lstm1_map"])[:, :, keep],
+                                  source["lstm1_map"])
+    assert not np.any(np.asarray(params["lstm1_map"])[:, :, -2:])
+    raster = jax.random.normal(jax.random.key(0), (1, CFG.grid_size, CFG.grid_size,
+                                                   len(wide.map_channels)))
+    got = SceneGenNet(wide).apply({"params": params}, raster, method=SceneGenNet.map_gates)
+    want = SceneGenNet(old).apply({"params": source}, raster[..., keep],
+                                  method=SceneGenNet.map_gates)
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6)
+    feat = jax.random.normal(jax.random.key(3), (5, CFG.hidden))
+    cls = jnp.array([0, 1, 2, 0, 1])
+    got = SceneGenNet(wide).apply({"params": params}, feat, cls, raster[0, 0, :5],
+                                  method=SceneGenNet.attributes)
+    want = SceneGenNet(old).apply({"params": source}, feat, cls, raster[0, 0, :5][:, keep],
+                                  method=SceneGenNet.attributes)
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_allclose(g, w, rtol=1e-6, atol=1e-6)
+    with pytest.raises(ValueError, match=r"src: trained with map channels \['crosswalk'\]"):
+        warm_start(params, init_state(CFG, seed=1).params, "src", wide.map_channels,
+                   CFG.map_channels)
 
 
 def test_nan_batch_is_rejected_before_the_optimizer(tiny_train_cache, small_scenes):

@@ -35,7 +35,7 @@ from scenegen_jax.raster.map import ALL_MAP_CHANNELS, rasterize_map
 from scenegen_jax.scene import CLASS_NAMES, Actors, in_region, make_ego
 
 log = logging.getLogger(__name__)
-CACHE_VERSION = 1
+CACHE_VERSION = 2  # 2: the nearest lane channels
 ACTOR_FIELDS = ("cls", "position", "size", "heading", "velocity", "valid")
 
 
@@ -350,9 +350,11 @@ def load_cache(path: str) -> Cache:
     if not isinstance(meta, dict) or not isinstance(meta.get("scene_ids"), list):
         raise ValueError(f"{meta_path}: field scene_ids: missing or not a list")
     if meta.get("version") != CACHE_VERSION:
-        raise ValueError(f"{meta_path}: field version: {meta.get('version')} != {CACHE_VERSION}")
+        raise ValueError(f"{meta_path}: field version: {meta.get('version')} != {CACHE_VERSION}"
+                         " (a cache of another version of scenegen: re-run scenegen prepare)")
     if meta.get("channels") != list(ALL_MAP_CHANNELS):
-        raise ValueError(f"{meta_path}: field channels: cache channels differ from this version")
+        raise ValueError(f"{meta_path}: field channels: cache channels differ from this "
+                         "version's (re-run scenegen prepare)")
     maps_path = os.path.join(path, "maps.npy")
     try:
         maps = np.load(maps_path, mmap_mode="r", allow_pickle=False)

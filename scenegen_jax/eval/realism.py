@@ -12,7 +12,7 @@ import numpy as np
 
 from scenegen_jax.config import Config
 from scenegen_jax.geometry import boxes_overlap
-from scenegen_jax.raster.map import ALL_MAP_CHANNELS, ORIENTATION_CHANNELS
+from scenegen_jax.raster.map import ALL_MAP_CHANNELS, NEAREST_LANE_CHANNELS, ORIENTATION_CHANNELS
 from scenegen_jax.scene import CLASS_NAMES, PEDESTRIAN, VEHICLE
 
 LANE_TOLERANCE_DEG = 20.0  # a vehicle on a lane is aligned within this of its direction
@@ -42,6 +42,8 @@ class VehicleCells(NamedTuple):
     on_drivable: np.ndarray  # bool, centre on the drivable area
     on_lane: np.ndarray  # bool, the lane orientation channels there longer than 0.5
     lane_direction: np.ndarray  # rad, the lane's direction in the ego frame (where on_lane)
+    nearest_direction: np.ndarray  # rad, the nearest centreline's direction (the
+    # `nearest_lane` channels; NaN beyond their range)
 
 
 def vehicle_cells(canvas: np.ndarray, actors, cfg: Config, radius_m: float = 40.0):
@@ -58,8 +60,12 @@ def vehicle_cells(canvas: np.ndarray, actors, cfg: Config, radius_m: float = 40.
     drivable = np.asarray(canvas[row, col, ALL_MAP_CHANNELS.index("drivable_area")])
     cos, sin = (np.asarray(canvas[row, col, ALL_MAP_CHANNELS.index(c)], np.float64)
                 for c in ORIENTATION_CHANNELS)
+    near_cos, near_sin = (np.asarray(canvas[row, col, ALL_MAP_CHANNELS.index(c)], np.float64)
+                          for c in NEAREST_LANE_CHANNELS)
+    nearest = np.where(np.hypot(near_cos, near_sin) > 0.5, np.arctan2(near_sin, near_cos),
+                       np.nan)
     return VehicleCells(slots, counted, drivable > 0.5, np.hypot(cos, sin) > 0.5,
-                        np.arctan2(sin, cos))
+                        np.arctan2(sin, cos), nearest)
 
 
 def drivable_share(canvas: np.ndarray, actors, cfg: Config, radius_m: float = 40.0):

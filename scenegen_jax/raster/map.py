@@ -18,6 +18,11 @@ from scenegen_jax.vector_map import VectorMap, is_crossable
 
 ALL_MAP_CHANNELS: tuple[str, ...] = tuple(c for g in ALL_LAYER_GROUPS for c in LAYER_GROUPS[g])
 ORIENTATION_CHANNELS = ("lane_orientation_cos", "lane_orientation_sin")
+NEAREST_LANE_CHANNELS = ("nearest_lane_cos", "nearest_lane_sin")
+# (cos, sin) pairs of directions in the raster's frame: they turn with it (`crop_map`).
+VECTOR_CHANNELS = (ORIENTATION_CHANNELS, NEAREST_LANE_CHANNELS)
+# The nearest lane channels are zero farther than this from every centreline.
+NEAREST_LANE_MAX_M = 30.0
 LINE_HALF_WIDTH_M = 0.15  # painted line / centreline half width before pixel padding
 
 
@@ -41,7 +46,9 @@ def rasterize_map(vmap: VectorMap, size: int, m_per_px: float) -> np.ndarray:
       m_per_px: resolution.
     Returns:
       float32 [size, size, len(ALL_MAP_CHANNELS)]; binary channels in {0, 1}, lane
-      orientation (cos, sin) of the lane direction inside lane polygons, 0 elsewhere.
+      orientation (cos, sin) of the lane direction inside lane polygons, 0 elsewhere;
+      nearest lane (cos, sin) of the nearest centreline's direction within
+      `NEAREST_LANE_MAX_M`, 0 farther.
     """
     n = size * size
     centers, points = _grid_points(size, m_per_px)  # cached per grid
@@ -69,8 +76,8 @@ def rasterize_map(vmap: VectorMap, size: int, m_per_px: float) -> np.ndarray:
         channels[name][hit_points(sel)[1]] = 1.0
     sel = [p for p, lane in zip(lane_polys, vmap.lanes, strict=True) if lane.is_intersection]
     channels["lane_intersection"][hit_points(sel)[1]] = 1.0
-    lines = [shapely.LineString(lane.centerline).buffer(line_buffer) for lane in vmap.lanes]
-    channels["lane_centerline"][hit_points(lines)[1]] = 1.0
+    centrelines = [shapely.LineString(lane.centerline) for lane in vmap.lanes]
+    channels["lane_centerline"][hit_points([c.buffer(line_buffer) for c in centrelines])[1]] = 1.0
     crossable, uncrossable = [], []
     marked = [(lane.left, lane.left_mark) for lane in vmap.lanes]
     marked += [(lane.right, lane.right_mark) for lane in vmap.lanes]
@@ -93,6 +100,16 @@ def rasterize_map(vmap: VectorMap, size: int, m_per_px: float) -> np.ndarray:
             cos, sin = _segment_direction(vmap.lanes[keep[j]].centerline, centers[idx])
             channels["lane_orientation_cos"][idx] = cos
             channels["lane_orientation_sin"][idx] = sin
+    # Nearest lane: direction of the nearest centreline segment, on and off the lanes (where
+    # the vehicles parked beside a street or in a lot take their heading from its aisles).
+    if centrelines:
+        pix, nearest = shapely.STRtree(centrelines).query_nearest(
+            points, max_distance=NEAREST_LANE_MAX_M, all_matches=False)
+        for j in np.unique(nearest):
+            idx = pix[nearest == j]
+            cos, sin = _segment_direction(vmap.lanes[j].centerline, centers[idx])
+            channels["nearest_lane_cos"][idx] = cos
+            channels["nearest_lane_sin"][idx] = sin
 
     areas = [_valid(shapely.Polygon(p)) for p in vmap.drivable_areas if len(p) >= 3]
     channels["drivable_area"][hit_points(areas)[1]] = 1.0
@@ -101,14 +118,19 @@ def rasterize_map(vmap: VectorMap, size: int, m_per_px: float) -> np.ndarray:
     return np.stack([channels[c] for c in ALL_MAP_CHANNELS], -1).reshape(size, size, -1)
 
 
-def _segment_direction(line: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(cos, sin) of the direction of the segment of `line` [P, 2] nearest to each point."""
+def _segment_direction(line: np.ndarray, pts: np.ndarray,
+                       chunk: int = 4096) -> tuple[np.ndarray, np.ndarray]:
+    """(cos, sin) of the direction of the segment of `line` [P, 2] nearest to each point
+    (`chunk` points at a time: a paper-grid canvas has 200,000)."""
     a, b = line[:-1], line[1:]
     d = b - a
     length2 = np.maximum((d**2).sum(-1), 1e-12)
-    t = np.clip(((pts[:, None, :] - a[None]) * d[None]).sum(-1) / length2, 0.0, 1.0)
-    proj = a[None] + t[..., None] * d[None]
-    nearest = np.argmin(((pts[:, None, :] - proj) ** 2).sum(-1), axis=1)
+    nearest = np.empty(len(pts), np.int64)
+    for i in range(0, len(pts), chunk):
+        p = pts[i : i + chunk, None, :]
+        t = np.clip(((p - a[None]) * d[None]).sum(-1) / length2, 0.0, 1.0)
+        proj = a[None] + t[..., None] * d[None]
+        nearest[i : i + chunk] = np.argmin(((p - proj) ** 2).sum(-1), axis=1)
     u = d[nearest] / np.sqrt(length2[nearest])[:, None]
     return u[:, 0], u[:, 1]
 

@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 
 from scenegen_jax.config import Config
-from scenegen_jax.raster.map import ALL_MAP_CHANNELS, ORIENTATION_CHANNELS, select_channels
+from scenegen_jax.raster.map import VECTOR_CHANNELS, select_channels
 from scenegen_jax.scene import Actors, Scene, canonical_order, in_region, pixel_centers, wrap_angle
 
 
@@ -31,6 +31,8 @@ def crop_map(canvas, theta, cfg: Config):
     Returns:
       [H, W, len(cfg.map_channels)] float32 map channels.
     """
+    if not cfg.map_channels:
+        return jnp.zeros((cfg.grid_size, cfg.grid_size, 0), jnp.float32)
     s = canvas.shape[0]
     centers = jnp.asarray(pixel_centers(cfg))  # [H, W, 2] (x, y) in the rotated frame
     src = rotate_vectors(centers, -theta)  # where each output pixel comes from
@@ -42,13 +44,16 @@ def crop_map(canvas, theta, cfg: Config):
     def sample(channel):
         return jax.scipy.ndimage.map_coordinates(channel, coords, order=1, mode="constant")
 
-    out = jax.vmap(sample, in_axes=-1, out_axes=-1)(canvas.astype(jnp.float32))
+    channels = select_channels(canvas, cfg).astype(jnp.float32)  # only the config's
+    out = jax.vmap(sample, in_axes=-1, out_axes=-1)(channels)
     out = out.reshape(cfg.grid_size, cfg.grid_size, -1)
-    # Lane orientation vectors turn with the frame.
-    ic, is_ = (ALL_MAP_CHANNELS.index(c) for c in ORIENTATION_CHANNELS)
-    turned = rotate_vectors(jnp.stack([out[..., ic], out[..., is_]], -1), theta)
-    out = out.at[..., ic].set(turned[..., 0]).at[..., is_].set(turned[..., 1])
-    return select_channels(out, cfg)
+    # Direction vectors (lane orientation, nearest lane) turn with the frame.
+    for pair in VECTOR_CHANNELS:
+        if pair[0] in cfg.map_channels:
+            ic, is_ = (cfg.map_channels.index(c) for c in pair)
+            turned = rotate_vectors(jnp.stack([out[..., ic], out[..., is_]], -1), theta)
+            out = out.at[..., ic].set(turned[..., 0]).at[..., is_].set(turned[..., 1])
+    return out
 
 
 def rotate_actors(actors: Actors, theta) -> Actors:

@@ -195,7 +195,9 @@ def train(
     if restored is not None:
         state = restored
     elif init_from is not None:
-        params = warm_start(state.params, start_params(init_from), init_from)
+        source_cfg, source = start_params(init_from)
+        params = warm_start(state.params, source, init_from, cfg.map_channels,
+                            source_cfg.map_channels)
         state = state._replace(params=params, opt_state=make_optimizer(cfg).init(params))
         log.info("starting from the parameters of %s", init_from)
     state = jax.device_put(state, replicated)
@@ -256,6 +258,39 @@ def train(
 ZERO_IF_MISSING = ("lstm1_map", "lstm1_coord", "lstm1_orient", "lstm1_order",
                    *(f"{name}{layer}_map_w" for name in ATTRIBUTES for layer in (0, 2)))
 SHARED_ATTRIBUTE_MLP = "attr"  # its parameters' prefix (`separate_attribute_mlps` false)
+# The axis of the map channels in the parameters that read them.
+MAP_CHANNEL_AXIS = {"lstm1_map": 2, **{f"{name}{layer}_map_w": 1
+                                       for name in ATTRIBUTES for layer in (0, 2)}}
+
+
+def widen_map_channels(source: dict, channels: tuple[str, ...],
+                       source_channels: tuple[str, ...], name: str) -> dict:
+    """Flat `source` parameters read by a model with map channels `channels` instead of the
+    `source_channels` they were trained with: each channel keeps its weights, the new ones
+    start at zero (adding a layer group leaves the model as is).
+
+    Raises:
+      ValueError naming `name` if the source has channels `channels` lacks (a model without
+      any map channels reads none of these weights: `source` as is).
+    """
+    if not channels:
+        return source
+    missing = [c for c in source_channels if c not in channels]
+    if missing:
+        raise ValueError(f"{name}: trained with map channels {missing} the config lacks")
+    at = [channels.index(c) for c in source_channels]
+    out = dict(source)
+    for path, axis in MAP_CHANNEL_AXIS.items():
+        if path in source:
+            x = np.asarray(source[path])
+            shape = list(x.shape)
+            shape[axis] = len(channels)
+            wide = np.zeros(shape, x.dtype)
+            index = [slice(None)] * x.ndim
+            index[axis] = at
+            wide[tuple(index)] = x
+            out[path] = wide
+    return out
 
 
 def split_attribute_mlp(source: dict, params: dict) -> dict:
@@ -279,27 +314,32 @@ def split_attribute_mlp(source: dict, params: dict) -> dict:
     return out
 
 
-def start_params(init_from: str):
-    """Parameters of a training workdir (its newest checkpoint), else of a pretrained model's
-    name or directory (`pretrained.load_pretrained`: fine-tuning a shipped model)."""
+def start_params(init_from: str) -> tuple[Config, dict]:
+    """(config, parameters) of a training workdir (its newest checkpoint), else of a
+    pretrained model's name or directory (`pretrained.load_pretrained`: fine-tuning a shipped
+    model)."""
     if os.path.isdir(os.path.join(init_from, CHECKPOINTS)):
-        return load_params(init_from)[1]
+        return load_params(init_from)[:2]
     try:
-        return load_pretrained(init_from)[1]
+        return load_pretrained(init_from)[:2]
     except FileNotFoundError as e:
         raise FileNotFoundError(f"--init-from: neither a workdir with {CHECKPOINTS}/ nor a "
                                 f"pretrained model ({e})") from e
 
 
-def warm_start(params, source, name: str):
+def warm_start(params, source, name: str, channels: tuple[str, ...] | None = None,
+               source_channels: tuple[str, ...] | None = None):
     """`params` with every parameter taken from `source` (same names and shapes), so training
-    starts from the source's model. The only parameters the source may lack are the map,
-    lane orientation sector, coordinate and canonical order shares of layer 1's input
-    convolution and the attribute MLPs' map weights (`ZERO_IF_MISSING`): they start at zero
-    (those inputs then change nothing until training moves them), so a model can be extended
-    with map layers, `orientation_bins`, `coord_channels`, `order_channel`,
-    `attribute_map_input` or `attribute_map_skip`; and per-attribute MLPs, which start as
-    copies of a shared attribute MLP (`split_attribute_mlp`: the same outputs).
+    starts from the source's model. With the map channels of both (`channels`,
+    `source_channels`), the source's map weights are first widened to `channels`
+    (`widen_map_channels`: a model can be extended with a map layer group). The only
+    parameters the source may lack are the map, lane orientation sector, coordinate and
+    canonical order shares of layer 1's input convolution and the attribute MLPs' map
+    weights (`ZERO_IF_MISSING`): they start at zero (those inputs then change nothing until
+    training moves them), so a model can be extended with map layers, `orientation_bins`,
+    `coord_channels`, `order_channel`, `attribute_map_input` or `attribute_map_skip`; and
+    per-attribute MLPs, which start as copies of a shared attribute MLP
+    (`split_attribute_mlp`: the same outputs).
 
     Raises:
       ValueError naming `name` and the parameter on a shape mismatch or another missing one.
@@ -307,6 +347,8 @@ def warm_start(params, source, name: str):
     flat = flatten_dict(params, sep="/")
     src = flatten_dict(source, sep="/")
     src = {**src, **split_attribute_mlp(src, flat)}
+    if channels is not None and source_channels is not None:
+        src = widen_map_channels(src, tuple(channels), tuple(source_channels), name)
     out = {}
     for path, x in flat.items():
         if path in src:
