@@ -7,9 +7,10 @@ heading mixture at that vehicle (given the real earlier actors, unrotated; the m
 1,440-angle grid, 0.25 degrees) against the vehicle's real heading; and, for the vehicles whose
 centre lies on a lane (the lane orientation channels at its pixel longer than 0.5, as
 `eval.realism.lane_offsets`), the real heading and the mode against the lane's direction;
-for the vehicles off every lane, the mode against the real heading. Quartiles and the 90th
-percentile, degrees. The best of M sampled headings lands near the mode, so the mode's offset
-from the lane is what a sample shows (`scenegen evaluate`'s "median offset of the aligned").
+for the vehicles off every lane, the mode against the real heading and the mean heading NLL
+(nats; uniform: log 2 pi = 1.838). Quartiles and the 90th percentile, degrees. The best of M
+sampled headings lands near the mode, so the mode's offset from the lane is what a sample
+shows (`scenegen evaluate`'s "median offset of the aligned").
 
   .venv/bin/python experiments/heading_check.py --pretrained cpu-av2-womd \
       --data runs/cache_cpu_womdjson_val --num 48
@@ -25,20 +26,22 @@ import jax.numpy as jnp
 import numpy as np
 
 from scenegen_jax.cli.common import add_model_args, load_model
+from scenegen_jax.config import ALL_LAYER_GROUPS
 from scenegen_jax.data.cache import load_cache
 from scenegen_jax.distributions.mixtures import heading_log_prob
 from scenegen_jax.eval.realism import lane_offsets, vehicle_cells
 from scenegen_jax.likelihood import unroll
 from scenegen_jax.likelihood.batch import crop_batch, gather_batch
-from scenegen_jax.raster.map import ALL_MAP_CHANNELS
+from scenegen_jax.raster.map import select_channels
 from scenegen_jax.scene import VEHICLE
 
 ANGLES = jnp.linspace(0.0, 2 * jnp.pi, 1440, endpoint=False)
 
 
-def heading_modes(params, cfg, maps, scene) -> np.ndarray:
+def heading_modes(params, cfg, maps, scene) -> tuple[np.ndarray, np.ndarray]:
     """[B, T] mode (rad) of the heading mixture at each step of the real scenes, teacher
-    forced: `unroll.unroll_terms` with each step's log-likelihood terms joined by the mode."""
+    forced, and [B, T] the log density of the real heading there (log 1/rad):
+    `unroll.unroll_terms` with each step's log-likelihood terms joined by the mode."""
     plain = unroll.actor_log_likelihood
 
     def with_mode(head, target, is_stop, cfg, hard_negatives):
@@ -52,18 +55,20 @@ def heading_modes(params, cfg, maps, scene) -> np.ndarray:
             params, maps, scene)
     finally:
         unroll.actor_log_likelihood = plain
-    return np.asarray(terms["mode"])
+    return np.asarray(terms["mode"]), np.asarray(terms["heading"])
 
 
 def heading_check(params, cfg, cache, num: int, batch: int = 8) -> dict:
     indices = np.linspace(0, len(cache) - 1, min(num, len(cache))).astype(int)
-    to_mode, real_lane, mode_lane, off_lane = [], [], [], []
+    to_mode, real_lane, mode_lane, off_lane, nll_off = [], [], [], [], []
+    every = cfg.inference().replace(map_layers=ALL_LAYER_GROUPS)  # the map the checks read
     for start in range(0, len(indices), batch):
         chunk = indices[start : start + batch]
-        maps, scene = crop_batch(gather_batch(cache, chunk, cfg), jnp.zeros(len(chunk)),
-                                 cfg.inference())
+        maps, scene = crop_batch(gather_batch(cache, chunk, cfg), jnp.zeros(len(chunk)), every)
         slots = scene.actors.cls.shape[1]
-        modes = heading_modes(params, cfg.inference(), maps, scene)[:, :slots]
+        modes, log_prob = heading_modes(params, cfg.inference(),
+                                        select_channels(maps, cfg), scene)
+        modes, log_prob = modes[:, :slots], log_prob[:, :slots]
         actors = jax.tree.map(np.asarray, scene.actors)
         canvases = np.asarray(maps)
         for b in range(len(chunk)):
@@ -71,10 +76,11 @@ def heading_check(params, cfg, cache, num: int, batch: int = 8) -> dict:
             vehicles = one.valid & (one.cls == VEHICLE)
             off = np.angle(np.exp(1j * (modes[b] - one.heading)))[vehicles]
             to_mode.extend(np.degrees(np.abs(off)).tolist())
-            canvas = canvases[b]  # every map channel (checked in main)
+            canvas = canvases[b]  # every map channel
             cells = vehicle_cells(canvas, one, cfg, np.inf)
             off = np.angle(np.exp(1j * (modes[b] - one.heading)))[cells.slots[~cells.on_lane]]
             off_lane.extend(np.degrees(np.abs(off)).tolist())
+            nll_off.extend((-log_prob[b][cells.slots[~cells.on_lane]]).tolist())
             real_lane.extend(lane_offsets(canvas, one, cfg, np.inf).tolist())
             moded = one.replace(heading=modes[b].astype(one.heading.dtype))
             mode_lane.extend(lane_offsets(canvas, moded, cfg, np.inf).tolist())
@@ -85,7 +91,8 @@ def heading_check(params, cfg, cache, num: int, batch: int = 8) -> dict:
     return {"vehicles": len(to_mode), "mode_vs_real_deg_q25_50_75_90": q(to_mode),
             "vehicles_on_lane": len(real_lane), "real_vs_lane_deg": q(real_lane),
             "mode_vs_lane_deg": q(mode_lane), "vehicles_off_lanes": len(off_lane),
-            "mode_vs_real_off_lanes_deg": q(off_lane)}
+            "mode_vs_real_off_lanes_deg": q(off_lane),
+            "heading_nll_off_lanes": round(float(np.mean(nll_off)), 3)}
 
 
 def main() -> None:
@@ -95,9 +102,6 @@ def main() -> None:
     p.add_argument("--num", type=int, default=48)
     args = p.parse_args()
     cfg, params, step, _ = load_model(args)
-    if tuple(cfg.map_channels) != tuple(ALL_MAP_CHANNELS):
-        raise SystemExit("heading_check reads the lane direction from the map: the model needs "
-                         f"every map layer, has {cfg.map_layers}")
     report = heading_check(params, cfg, load_cache(args.data), args.num)
     print(json.dumps({"step": step, "data": args.data, **report}))
 

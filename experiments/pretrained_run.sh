@@ -6,12 +6,14 @@
 # The `cpu` preset (separate attribute MLPs since session 18) with pixel coordinates, the
 # canonical order's channel, the map at the actor's bin as an attribute input (first and last
 # layer), the nearest lane's direction as two more map channels (the `nearest_lane` layers),
-# and a 50-step warm-up. It is the seventh phase of the model's training (MODEL_CARD.md):
-# session 28 started it from the sixth phase's step 950 (`INIT_FROM=cpu-av2-womd`, the
-# shipped model then; the new channels' weights start at zero; metrics of the sixth phase
+# and a 50-step warm-up. It is the seventh phase of the model's training: session 28
+# started it from the sixth phase's step 950 (`INIT_FROM=cpu-av2-womd`, the shipped model;
+# the new channels' weights start at zero; metrics of the sixth phase
 # experiments/results/pretrained_run_decay_metrics.jsonl), with a cosine decay of the
 # learning rate to 0 over 550 steps after the warm-up and a new seed:
 #   INIT_FROM=cpu-av2-womd experiments/pretrained_run.sh 600 1
+# Its step 600 was not shipped: its samples were less realistic than the sixth phase's
+# (experiments/results/README.md, sessions 28-29).
 # Session 25 started the sixth phase from the fifth phase's step 425, the shipped model
 # (`INIT_FROM=cpu-av2-womd`; the fifth phase went on to step 742 at a constant learning rate
 # and got worse on Argoverse 2 val, experiments/results/pretrained_run_skip_metrics.jsonl),

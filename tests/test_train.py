@@ -170,10 +170,20 @@ def test_group_norm_matches_flax():
         np.testing.assert_allclose(ours(*args), theirs(*args), rtol=1e-5, atol=1e-5)
         for g_ours, g_theirs in zip(grads(ours, *args), grads(theirs, *args), strict=True):
             np.testing.assert_allclose(g_ours, g_theirs, rtol=1e-4, atol=1e-4)
-    per_example = group_norm(x, 4, scale[:, None, None, :], bias[:, None, None, :])
+    s4, b4 = scale[:, None, None, :], bias[:, None, None, :]
+    per_example = group_norm(x, 4, s4, b4)
+    g_x, g_s, g_b = grads(ours, x, s4, b4)
     for i in range(3):
-        np.testing.assert_allclose(per_example[i : i + 1], theirs(x[i : i + 1], scale[i], bias[i]),
-                                   rtol=1e-5, atol=1e-5)
+        one = (x[i : i + 1], scale[i], bias[i])
+        np.testing.assert_allclose(per_example[i : i + 1], theirs(*one), rtol=1e-5, atol=1e-5)
+        for g_ours, g_theirs in zip((g_x[i : i + 1], g_s[i, 0, 0], g_b[i, 0, 0]),
+                                    grads(theirs, *one), strict=True):
+            np.testing.assert_allclose(g_ours, g_theirs, rtol=1e-4, atol=1e-4)
+    # parameters shared by a batch: their gradient sums the examples'
+    shared = grads(ours, x, scale[0], bias[0])
+    each = [grads(theirs, x[i : i + 1], scale[0], bias[0]) for i in range(3)]
+    for k in (1, 2):
+        np.testing.assert_allclose(shared[k], sum(e[k] for e in each), rtol=1e-4, atol=1e-4)
 
 
 def test_overfit_two_real_scenes(tiny_train_cache, small_scenes):
