@@ -6,14 +6,17 @@
 # The `cpu` preset (separate attribute MLPs since session 18) with pixel coordinates, the
 # canonical order's channel, the map at the actor's bin as an attribute input (first and last
 # layer), the nearest lane's direction as two more map channels (the `nearest_lane` layers),
-# and a 50-step warm-up. It is the seventh phase of the model's training: session 28
-# started it from the sixth phase's step 950 (`INIT_FROM=cpu-av2-womd`, the shipped model;
-# the new channels' weights start at zero; metrics of the sixth phase
+# the heading mixture turned by that direction (`heading_lane_frame`) and a 50-step warm-up.
+# It is the eighth phase of the model's training: session 30 started it from the sixth
+# phase's step 950 (`INIT_FROM=cpu-av2-womd`, the shipped model; the new channels' weights
+# start at zero and the heading MLP's last layer afresh; metrics of the sixth phase
 # experiments/results/pretrained_run_decay_metrics.jsonl), with a cosine decay of the
-# learning rate to 0 over 550 steps after the warm-up and a new seed:
-#   INIT_FROM=cpu-av2-womd experiments/pretrained_run.sh 600 1
-# Its step 600 was not shipped: its samples were less realistic than the sixth phase's
-# (experiments/results/README.md, sessions 28-29).
+# learning rate to 0 over 650 steps after the warm-up and a new seed:
+#   INIT_FROM=cpu-av2-womd experiments/pretrained_run.sh 700 1
+# The seventh phase (session 28, the same from the same start without `heading_lane_frame`,
+# decay over 550 steps, seed 7, 600 steps; metrics
+# experiments/results/pretrained_run_nearest_lane_metrics.jsonl) was not shipped: its samples
+# were less realistic than the sixth phase's (experiments/results/README.md, sessions 28-29).
 # Session 25 started the sixth phase from the fifth phase's step 425, the shipped model
 # (`INIT_FROM=cpu-av2-womd`; the fifth phase went on to step 742 at a constant learning rate
 # and got worse on Argoverse 2 val, experiments/results/pretrained_run_skip_metrics.jsonl),
@@ -50,11 +53,11 @@ prep womd_json "$SHARED/womd_mini/gpudrive_json" train runs/cache_cpu_womdjson_t
 prep scenarionet "$SHARED/womd_mini/scenarionet" train runs/cache_cpu_womdpkl_train
 # The no-map run's last phase (the sixth's schedule and seed); the seventh phase's.
 if [ -n "${NOMAP:-}" ]; then
-    WORKDIR=experiments/nomap_run INPUTS="map_layers=none decay_steps=900 seed=6"
+    WORKDIR=experiments/nomap_run INPUTS="map_layers=none decay_steps=650 seed=8"
 else
     WORKDIR=experiments/pretrained_run
     INPUTS="map_layers=lanes,drivable,crosswalks,nearest_lane attribute_map_input=true"
-    INPUTS="$INPUTS attribute_map_skip=true decay_steps=550 seed=7"
+    INPUTS="$INPUTS attribute_map_skip=true heading_lane_frame=true decay_steps=650 seed=8"
 fi
 XLA_FLAGS=--xla_cpu_multi_thread_eigen=false taskset -c "$CORE" $BIN/scenegen train \
     --config cpu --set coord_channels=true order_channel=true $INPUTS \

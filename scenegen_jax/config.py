@@ -115,6 +115,13 @@ class Config:
         direction (cos, sin) to the heading mixture's directions, which the hidden ReLU
         layers only approximate: the sampled headings stood 5-20 degrees off their lanes
         where the real ones stand within 5 (experiments/results/README.md, session 20).
+      heading_lane_frame: the heading mixture's directions are relative to the nearest
+        lane's direction at the actor's bin (beyond the paper; the distribution is still the
+        paper's von Mises mixture, turned by a known angle): the heading MLP gives angles
+        against the lane, so one set of weights serves every street's direction, and a
+        vehicle off the lanes (parked along or across the street) starts from the street's
+        axis rather than from the grid's. No turn where no centreline is within
+        `raster.map.NEAREST_LANE_MAX_M`. Needs the `nearest_lane` map layers.
       separate_attribute_mlps: one three-layer MLP per attribute (box, heading, velocity), as
         the paper's MLP_box, MLP_theta and MLP_v (the presets). False, the form of checkpoints
         saved before this field existed, is one MLP whose last layer outputs all three: the
@@ -151,6 +158,7 @@ class Config:
     order_channel: bool = False
     attribute_map_input: bool = False
     attribute_map_skip: bool = False
+    heading_lane_frame: bool = False
     separate_attribute_mlps: bool = False
     seed: int = 0
 
@@ -266,6 +274,9 @@ def config_problems(cfg: Config) -> list[str]:
     if cfg.attribute_map_skip is True and cfg.attribute_map_input is not True:
         out.append("attribute_map_skip: needs attribute_map_input, got "
                    f"{cfg.attribute_map_input!r}")
+    if cfg.heading_lane_frame is True and "nearest_lane" not in cfg.map_layers:
+        out.append("heading_lane_frame: needs the 'nearest_lane' map layers, got map_layers "
+                   f"{cfg.map_layers!r}")
     for name in ("m_per_px", "learning_rate", "pedestrian_size_m"):
         v = getattr(cfg, name)
         if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
@@ -285,7 +296,8 @@ def config_problems(cfg: Config) -> list[str]:
     ):
         out.append(f"ego_size_m: must be two numbers > 0 (width, length), got {cfg.ego_size_m!r}")
     for name in ("rotate_augment", "remat", "coord_channels", "order_channel",
-                 "attribute_map_input", "attribute_map_skip", "separate_attribute_mlps"):
+                 "attribute_map_input", "attribute_map_skip", "heading_lane_frame",
+                 "separate_attribute_mlps"):
         if not isinstance(getattr(cfg, name), bool):
             out.append(f"{name}: must be true or false, got {getattr(cfg, name)!r}")
     return out

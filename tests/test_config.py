@@ -33,6 +33,7 @@ from scenegen_jax.config import PRESETS, Config, get_config
         ({"attribute_map_input": "true", "map_layers": "none"},
          "attribute_map_input: needs map layers"),
         ({"attribute_map_skip": "true"}, "attribute_map_skip: needs attribute_map_input"),
+        ({"heading_lane_frame": "true"}, "heading_lane_frame: needs the 'nearest_lane' map"),
         ({"ego_size_m": "2"}, "ego_size_m: must be two numbers"),
         ({"colour": "red"}, "unknown config field 'colour'"),
     ],

@@ -607,6 +607,70 @@ def test_a_new_map_layer_group_starts_at_zero_from_a_warm_start():
                    CFG.map_channels)
 
 
+def test_heading_lane_frame_turns_the_heading_mixture_by_the_nearest_lane_at_the_bin():
+    """`heading_lane_frame`: the heading density at h with the nearest lane at angle a equals
+    the density at h - a where no lane is near (scipy's von Mises mixture, weights and
+    concentrations from the unturned head); a direction shorter than 1/2 is no lane, a
+    longer one counts by its angle alone. The box and velocity do not move."""
+    from scipy import stats
+
+    from scenegen_jax.distributions import heading_log_prob
+    from scenegen_jax.distributions.params import split_heading
+
+    cfg = CFG.replace(map_layers=("lanes", "nearest_lane"), heading_lane_frame=True)
+    params = init_state(cfg, seed=3).params
+    params = {**params, "heading2_w": params["heading2_w"] * 30.0}  # a peaked, uneven mixture
+    i, j = (cfg.map_channels.index(c) for c in ("nearest_lane_cos", "nearest_lane_sin"))
+    a = np.array([0.0, 0.7, 2.5, -1.9, 1.0])
+    length = np.array([1.0, 1.0, 0.8, 1.0, 0.3])  # 0.3: no lane (no turn)
+    map_feat = np.zeros((5, len(cfg.map_channels)), np.float32)
+    map_feat[:, i], map_feat[:, j] = length * np.cos(a), length * np.sin(a)
+    feat = jnp.broadcast_to(jax.random.normal(jax.random.key(1), (1, cfg.hidden)), (5, cfg.hidden))
+    cls = jnp.zeros((5,), jnp.int32)
+    net = SceneGenNet(cfg)
+    box, heading, velocity = net.apply({"params": params}, feat, cls, jnp.asarray(map_feat),
+                                       method=SceneGenNet.attributes)
+    base = net.apply({"params": params}, feat, cls, jnp.zeros_like(map_feat),
+                     method=SceneGenNet.attributes)
+    np.testing.assert_array_equal(box, base[0])
+    np.testing.assert_array_equal(velocity, base[2])
+    unturned = split_heading(base[1][0])
+    w = np.exp(unturned.logits - np.logaddexp.reduce(np.asarray(unturned.logits)))
+    mu = np.arctan2(unturned.direction[:, 1], unturned.direction[:, 0])
+    kappa = np.exp(np.asarray(unturned.log_kappa))
+    h = np.linspace(-np.pi, np.pi, 7)
+    for n, turn in enumerate(np.where(length >= 0.5, a, 0.0)):
+        want = np.log(sum(wk * stats.vonmises.pdf(h - turn, kk, loc=mk)
+                          for wk, kk, mk in zip(w, kappa, mu, strict=True)))
+        got = [float(heading_log_prob(heading[n], jnp.float32(x))) for x in h]
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4)
+
+
+def test_a_warm_start_into_the_lane_frame_starts_the_heading_layer_afresh():
+    """From a model whose headings are in the grid's frame, `heading_lane_frame` takes every
+    parameter but the heading MLP's last layer (`reframed`), which keeps its fresh values; a
+    model with one attribute MLP for all three is refused by name."""
+    from flax.traverse_util import flatten_dict
+
+    from scenegen_jax.train.loop import HEADING_LAST_LAYER, reframed, warm_start
+
+    old = CFG.replace(map_layers=("lanes", "nearest_lane"), attribute_map_input=True,
+                      attribute_map_skip=True)
+    new = old.replace(heading_lane_frame=True)
+    assert reframed(new, new) == () and reframed(old, old) == ()
+    source = init_state(old, seed=1).params
+    fresh = init_state(new, seed=2).params
+    got = warm_start(fresh, source, "src", fresh=reframed(new, old))
+    assert set(HEADING_LAST_LAYER) <= set(got)
+    fresh, source = flatten_dict(fresh, sep="/"), flatten_dict(source, sep="/")
+    for name, x in flatten_dict(got, sep="/").items():
+        want = fresh[name] if name in HEADING_LAST_LAYER else source[name]
+        np.testing.assert_array_equal(x, want, err_msg=name)
+    with pytest.raises(ValueError, match="heading_lane_frame: .* separate_attribute_mlps"):
+        reframed(new.replace(separate_attribute_mlps=False, attribute_map_input=False,
+                             attribute_map_skip=False), old)
+
+
 def test_nan_batch_is_rejected_before_the_optimizer(tiny_train_cache, small_scenes):
     batch = _batch(tiny_train_cache, small_scenes)
     batch.actors.velocity[1, 0, 0] = np.nan

@@ -188,6 +188,22 @@ def unit_biternion(cs: jnp.ndarray) -> jnp.ndarray:
     return cs * jnp.reciprocal(jnp.sqrt(jnp.sum(cs * cs, axis=-1, keepdims=True) + BITERNION_EPS))
 
 
+def rotate_heading(raw: jnp.ndarray, cos: jnp.ndarray, sin: jnp.ndarray) -> jnp.ndarray:
+    """Raw heading vectors [..., 4K] with every component's direction turned by the angle
+    whose unit (cos, sin) is given per vector [...]: the mixture of `split_heading` turned
+    by that angle (weights and concentrations unchanged; a rotation keeps the biternion's
+    length, so `unit_biternion` commutes with it)."""
+    k = raw.shape[-1] // 4
+    if raw.shape[-1] != heading_params_size(k) or k < 1:
+        raise ValueError(f"raw heading params: length {raw.shape[-1]} is not a valid layout size")
+    d = raw[..., k : 3 * k].reshape(*raw.shape[:-1], k, 2)
+    c, s = cos[..., None], sin[..., None]
+    turned = jnp.stack([c * d[..., 0] - s * d[..., 1], s * d[..., 0] + c * d[..., 1]], axis=-1)
+    return jnp.concatenate(
+        [raw[..., :k], turned.reshape(*raw.shape[:-1], 2 * k), raw[..., 3 * k :]], axis=-1
+    )
+
+
 def split_box(raw: jnp.ndarray) -> BoxParams:
     """Splits and constrains a raw box vector [6K] (K from its length)."""
     k = _num_mixtures(raw, 6, 0, "box")

@@ -23,7 +23,7 @@ from flax import errors
 from scenegen_jax.backend import init_compiler_options, weight_gradient_bands
 from scenegen_jax.config import Config
 from scenegen_jax.raster.actors import ACTOR_CHANNELS, window_origin, window_size
-from scenegen_jax.raster.map import ORIENTATION_CHANNELS
+from scenegen_jax.raster.map import NEAREST_LANE_CHANNELS, ORIENTATION_CHANNELS
 from scenegen_jax.scene import NUM_CLASSES
 
 NUM_ACTOR_CHANNELS = len(ACTOR_CHANNELS)
@@ -483,12 +483,16 @@ class SceneGenNet(nn.Module):
     def attributes(self, feat, cls, map_feat=None):
         """Raw (box, heading, velocity) parameters from feature vectors [B, h] for class [B];
         with `attribute_map_input`, also from the map channels at the bins, map_feat [B, Cm]
-        (ignored otherwise), in layer 0 and, with `attribute_map_skip`, in the last layer."""
+        (ignored otherwise), in layer 0 and, with `attribute_map_skip`, in the last layer.
+        With `heading_lane_frame` the heading mixture's directions are turned by the nearest
+        lane's direction at the bin (`nearest_lane_direction`): the MLP gives them relative
+        to the lane."""
         cls = jnp.clip(cls, 0, NUM_CLASSES - 1)
+        for option in ("attribute_map_input", "heading_lane_frame"):
+            if getattr(self.cfg, option) and map_feat is None:
+                raise ValueError(f"{option}: attributes() needs the map channels at the bins "
+                                 "(map_feat)")
         if self.cfg.attribute_map_input:
-            if map_feat is None:
-                raise ValueError("attribute_map_input: attributes() needs the map channels at "
-                                 "the bins (map_feat)")
             m = map_feat.astype(feat.dtype)
             x = jnp.concatenate([feat, m], axis=-1)
             outs = [
@@ -501,10 +505,16 @@ class SceneGenNet(nn.Module):
         else:
             outs = [_mlp(feat, ws, bs, cls) for ws, bs in self.attr_mlps]
         if len(outs) == len(ATTRIBUTES):
-            return tuple(outs)
-        nb, nh, _ = attribute_sizes(self.cfg.num_mixtures)
-        x = outs[0]
-        return x[:, :nb], x[:, nb : nb + nh], x[:, nb + nh :]
+            box, heading, velocity = outs
+        else:
+            nb, nh, _ = attribute_sizes(self.cfg.num_mixtures)
+            x = outs[0]
+            box, heading, velocity = x[:, :nb], x[:, nb : nb + nh], x[:, nb + nh :]
+        if self.cfg.heading_lane_frame:
+            from scenegen_jax.distributions.params import rotate_heading
+
+            heading = rotate_heading(heading, *nearest_lane_direction(map_feat, self.cfg))
+        return box, heading, velocity
 
     def __call__(self, map_raster, actor_raster, cls, bins):
         """One full step from a zero state (used to initialise every parameter)."""
@@ -517,6 +527,20 @@ class SceneGenNet(nn.Module):
         map_feat = map_at_bins(map_raster, bins)
         return (self.class_logits(f), self.location_logits(f, cls),
                 self.attributes(feat, cls, map_feat))
+
+
+def nearest_lane_direction(map_feat, cfg: Config):
+    """The nearest lane's direction at the bins as a unit (cos, sin), each [...], from the map
+    channels there, map_feat [..., Cm] (`nearest_lane` layers); (1, 0), no turn, where no
+    centreline is within `raster.map.NEAREST_LANE_MAX_M` (the channels are 0 there; a
+    length under 1/2, as where a rotated crop blends a direction with 0, counts as none)."""
+    i = cfg.map_channels.index(NEAREST_LANE_CHANNELS[0])
+    j = cfg.map_channels.index(NEAREST_LANE_CHANNELS[1])
+    c, s = map_feat[..., i], map_feat[..., j]
+    n = jnp.hypot(c, s)
+    some = n >= 0.5
+    n = jnp.where(some, n, 1.0)
+    return jnp.where(some, c / n, 1.0), jnp.where(some, s / n, 0.0)
 
 
 def map_at_bins(map_raster, bins):

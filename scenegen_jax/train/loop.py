@@ -197,7 +197,7 @@ def train(
     elif init_from is not None:
         source_cfg, source = start_params(init_from)
         params = warm_start(state.params, source, init_from, cfg.map_channels,
-                            source_cfg.map_channels)
+                            source_cfg.map_channels, fresh=reframed(cfg, source_cfg))
         state = state._replace(params=params, opt_state=make_optimizer(cfg).init(params))
         log.info("starting from the parameters of %s", init_from)
     state = jax.device_put(state, replicated)
@@ -327,8 +327,29 @@ def start_params(init_from: str) -> tuple[Config, dict]:
                                 f"pretrained model ({e})") from e
 
 
+# The heading MLP's last layer: what gives the heading mixture's directions.
+HEADING_LAST_LAYER = ("heading2_w", "heading2_b", "heading2_map_w")
+
+
+def reframed(cfg: Config, source_cfg: Config) -> tuple[str, ...]:
+    """The parameters a warm start from a `source_cfg` model must not take for `cfg`: the
+    heading MLP's last layer where `heading_lane_frame` differs (its directions meant
+    angles in another frame; it starts afresh, as a near-uniform heading, and the hidden
+    layers keep what they learnt). Empty where the frames agree.
+
+    Raises:
+      ValueError where the frames differ and `cfg` has one attribute MLP for all three (its
+      last layer also gives the box and velocity)."""
+    if cfg.heading_lane_frame == source_cfg.heading_lane_frame:
+        return ()
+    if not cfg.separate_attribute_mlps:
+        raise ValueError("heading_lane_frame: a warm start from a model in the other frame "
+                         "needs separate_attribute_mlps (the heading's own last layer)")
+    return HEADING_LAST_LAYER
+
+
 def warm_start(params, source, name: str, channels: tuple[str, ...] | None = None,
-               source_channels: tuple[str, ...] | None = None):
+               source_channels: tuple[str, ...] | None = None, fresh: tuple[str, ...] = ()):
     """`params` with every parameter taken from `source` (same names and shapes), so training
     starts from the source's model. With the map channels of both (`channels`,
     `source_channels`), the source's map weights are first widened to `channels`
@@ -339,7 +360,8 @@ def warm_start(params, source, name: str, channels: tuple[str, ...] | None = Non
     training moves them), so a model can be extended with map layers, `orientation_bins`,
     `coord_channels`, `order_channel`, `attribute_map_input` or `attribute_map_skip`; and
     per-attribute MLPs, which start as copies of a shared attribute MLP
-    (`split_attribute_mlp`: the same outputs).
+    (`split_attribute_mlp`: the same outputs). The parameters named in `fresh` keep their
+    values in `params` (`reframed`).
 
     Raises:
       ValueError naming `name` and the parameter on a shape mismatch or another missing one.
@@ -351,7 +373,9 @@ def warm_start(params, source, name: str, channels: tuple[str, ...] | None = Non
         src = widen_map_channels(src, tuple(channels), tuple(source_channels), name)
     out = {}
     for path, x in flat.items():
-        if path in src:
+        if path in fresh:
+            out[path] = jnp.array(x, copy=True)
+        elif path in src:
             if src[path].shape != x.shape:
                 raise ValueError(f"{name}: parameter {path} has shape {src[path].shape}, the "
                                  f"config needs {x.shape}")
