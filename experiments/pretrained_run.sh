@@ -35,7 +35,10 @@
 # scratch to step 4,142 at a constant learning rate (session 24; metrics
 # experiments/results/nomap_run_const_metrics.jsonl); session 26 started its decay phase, the
 # same as the shipped model's sixth, from that step 4,142 (INIT_FROM=runs/nomap_run_const4142,
-# a copy of that workdir): NOMAP=1 INIT_FROM=DIR experiments/pretrained_run.sh 950 1.
+# a copy of that workdir): NOMAP=1 INIT_FROM=DIR experiments/pretrained_run.sh 950 1 (its
+# metrics experiments/results/nomap_run_decay_metrics.jsonl). Session 30 started the same
+# schedule as the eighth phase's from that run's step 950 (INIT_FROM=runs/nomap_run_decay950,
+# a copy of that workdir): NOMAP=1 INIT_FROM=DIR experiments/pretrained_run.sh 700 1.
 # Usage: [NOMAP=1] experiments/pretrained_run.sh [STEPS] [CORE] [MINUTES]
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -51,7 +54,7 @@ prep() {  # SOURCE ROOT SPLIT OUT [prepare options]
 prep av2 "$SHARED/av2_sensor_mini" train runs/cache_cpu_av2_train --stride 1
 prep womd_json "$SHARED/womd_mini/gpudrive_json" train runs/cache_cpu_womdjson_train
 prep scenarionet "$SHARED/womd_mini/scenarionet" train runs/cache_cpu_womdpkl_train
-# The no-map run's last phase (the sixth's schedule and seed); the seventh phase's.
+# The no-map run's last phase and the eighth phase: the same schedule and seed.
 if [ -n "${NOMAP:-}" ]; then
     WORKDIR=experiments/nomap_run INPUTS="map_layers=none decay_steps=650 seed=8"
 else
