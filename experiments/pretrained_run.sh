@@ -8,8 +8,8 @@
 # layer), the nearest lane's direction as two more map channels (the `nearest_lane` layers),
 # the heading mixture turned by that direction (`heading_lane_frame`) and a 50-step warm-up.
 # It is the ninth phase of the model's training: session 31 started it from the sixth
-# phase's step 950 (`INIT_FROM=cpu-av2-womd`, the shipped model; the new channels' weights
-# start at zero and the heading MLP's last layer afresh; metrics of the sixth phase
+# phase's step 950 (`INIT_FROM=cpu-av2-womd`, then the shipped model; the new channels'
+# weights start at zero and the heading MLP's last layer afresh; metrics of the sixth phase
 # experiments/results/pretrained_run_decay_metrics.jsonl), with a peak learning rate of 3e-4
 # and otherwise the eighth phase's schedule and seed:
 #   INIT_FROM=cpu-av2-womd experiments/pretrained_run.sh 700 1
@@ -59,7 +59,7 @@ prep() {  # SOURCE ROOT SPLIT OUT [prepare options]
 prep av2 "$SHARED/av2_sensor_mini" train runs/cache_cpu_av2_train --stride 1
 prep womd_json "$SHARED/womd_mini/gpudrive_json" train runs/cache_cpu_womdjson_train
 prep scenarionet "$SHARED/womd_mini/scenarionet" train runs/cache_cpu_womdpkl_train
-# The no-map run's last phase and the eighth phase: the same schedule and seed.
+# The no-map run's last phase: the eighth phase's schedule and seed (learning rate 1e-3).
 if [ -n "${NOMAP:-}" ]; then
     WORKDIR=experiments/nomap_run INPUTS="map_layers=none decay_steps=650 seed=8"
 else
