@@ -22,6 +22,7 @@ from flax import errors
 
 from scenegen_jax.backend import init_compiler_options, weight_gradient_bands
 from scenegen_jax.config import Config
+from scenegen_jax.distributions import params as P
 from scenegen_jax.raster.actors import ACTOR_CHANNELS, window_origin, window_size
 from scenegen_jax.raster.map import NEAREST_LANE_CHANNELS, ORIENTATION_CHANNELS
 from scenegen_jax.scene import NUM_CLASSES
@@ -32,9 +33,7 @@ ATTRIBUTES = ("box", "heading", "velocity")  # the attribute heads, in output or
 
 def attribute_sizes(k: int) -> tuple[int, int, int]:
     """Flat head sizes (box, heading, velocity) for K mixture components."""
-    from scenegen_jax.distributions import BOX_PARAMS, HEADING_PARAMS, VELOCITY_PARAMS
-
-    return BOX_PARAMS(k), HEADING_PARAMS(k), VELOCITY_PARAMS(k)
+    return P.BOX_PARAMS(k), P.HEADING_PARAMS(k), P.VELOCITY_PARAMS(k)
 
 
 def orientation_sectors(cos, sin, k: int):
@@ -151,8 +150,6 @@ def _attribute_bias_rows(k: int):
     """Initial biases of the last attribute layers (box, heading, velocity): box zeros, then
     the heading and velocity starts of `distributions.params` (near-uniform, evenly spread
     mixtures)."""
-    from scenegen_jax.distributions import params as P
-
     return np.zeros(P.box_params_size(k)), P.initial_heading_bias(k), P.initial_velocity_bias(k)
 
 
@@ -511,9 +508,7 @@ class SceneGenNet(nn.Module):
             x = outs[0]
             box, heading, velocity = x[:, :nb], x[:, nb : nb + nh], x[:, nb + nh :]
         if self.cfg.heading_lane_frame:
-            from scenegen_jax.distributions.params import rotate_heading
-
-            heading = rotate_heading(heading, *nearest_lane_direction(map_feat, self.cfg))
+            heading = P.rotate_heading(heading, *nearest_lane_direction(map_feat, self.cfg))
         return box, heading, velocity
 
     def __call__(self, map_raster, actor_raster, cls, bins):
