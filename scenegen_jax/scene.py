@@ -144,8 +144,12 @@ def pixel_centers(cfg: Config, size: int | None = None) -> np.ndarray:
 
 
 def in_region(position, cfg: Config):
-    """bool [...]: position [..., 2] lies inside the square region of interest."""
+    """bool [...]: position [..., 2] lies inside the square region of interest (float32, as
+    on the device; a NumPy input gives a NumPy result without a compiled call)."""
     half = cfg.region_m / 2
+    if isinstance(position, np.ndarray):
+        position = position.astype(np.float32, copy=False)
+        return np.all((position >= -half) & (position < half), axis=-1)
     return jnp.all((position >= -half) & (position < half), axis=-1)
 
 

@@ -92,6 +92,44 @@ def test_nearest_lane_points_along_the_nearest_centreline_up_to_its_range():
     np.testing.assert_allclose(cos[inside], r[inside, CH["lane_orientation_cos"]], atol=1e-6)
 
 
+def _womd_frame(womd_root):
+    import os
+
+    from scenegen_jax.data.sources import read_file, source_files, source_spec
+
+    spec = source_spec("womd_json", os.path.join(womd_root, "gpudrive_json"), "val", 10)
+    return read_file(spec, source_files(spec)[0])[0][0]
+
+
+@pytest.mark.parametrize("source,size,res", [("av2", 160, 0.5), ("womd", 64, 1.25),
+                                             ("av2", 48, 2.5)])
+def test_nearest_lane_is_the_direction_of_a_nearest_segment_on_real_maps(
+        all_frames, womd_root, source, size, res):
+    """On real maps, every pixel within range takes the direction of a centreline segment at
+    the least distance from it (brute force over every segment of the map; of equally near
+    segments, any), and no pixel farther than the range from every segment takes one."""
+    frame = all_frames["val"][0][40] if source == "av2" else _womd_frame(womd_root)
+    r = rasterize_map(frame.map, size, res)
+    got = np.stack([r[..., CH[c]].ravel() for c in NEAREST_LANE_CHANNELS], 1)
+    lines = [lane.centerline for lane in frame.map.lanes]
+    a = np.concatenate([line[:-1] for line in lines])
+    b = np.concatenate([line[1:] for line in lines])
+    xy = pixel_centers(get_config("tiny").replace(grid_size=size, m_per_px=res))
+    xy = xy.reshape(-1, 1, 2).astype(np.float64)
+    d = b - a
+    length = np.linalg.norm(d, axis=1)
+    t = np.clip(((xy - a) * d).sum(-1) / np.maximum(length**2, 1e-12), 0.0, 1.0)
+    dist = np.linalg.norm(xy - (a + t[..., None] * d), axis=-1)  # [pixels, segments]
+    least = dist.min(1)
+    u = d / np.maximum(length, 1e-12)[:, None]
+    reach = least <= NEAREST_LANE_MAX_M
+    assert reach.mean() > 0.3 and len(a) > 100
+    tied = dist <= least[:, None] + 1e-6
+    same = (np.abs(got[:, None] - u[None]) < 1e-3).all(-1)
+    assert np.all((tied & same).any(1)[reach])
+    assert not np.any(got[least > NEAREST_LANE_MAX_M + 1e-6])
+
+
 def test_rotated_vector_map_matches_rotated_canvas(all_frames):
     cfg = get_config("cpu", map_layers=ALL_LAYER_GROUPS)
     frame = all_frames["val"][0][40]

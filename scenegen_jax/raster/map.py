@@ -23,6 +23,8 @@ NEAREST_LANE_CHANNELS = ("nearest_lane_cos", "nearest_lane_sin")
 VECTOR_CHANNELS = (ORIENTATION_CHANNELS, NEAREST_LANE_CHANNELS)
 # The nearest lane channels are zero farther than this from every centreline.
 NEAREST_LANE_MAX_M = 30.0
+# Side of the pixel blocks of the nearest-centreline search (`_nearest_segments`), m.
+NEAREST_BLOCK_M = 1.5
 LINE_HALF_WIDTH_M = 0.15  # painted line / centreline half width before pixel padding
 
 
@@ -53,6 +55,9 @@ def rasterize_map(vmap: VectorMap, size: int, m_per_px: float) -> np.ndarray:
     n = size * size
     centers, points = _grid_points(size, m_per_px)  # cached per grid
     half = size * m_per_px / 2 + 1.0
+    # Nothing farther than the nearest lane's range from the raster changes it (box test).
+    vmap = vmap.crop(np.zeros(2), half + NEAREST_LANE_MAX_M)
+    lines = [lane.centerline for lane in vmap.lanes]
     roi = shapely.box(-half, -half, half, half)
     line_buffer = max(LINE_HALF_WIDTH_M, 0.5 * m_per_px)
     channels = {c: np.zeros(n, np.float32) for c in ALL_MAP_CHANNELS}
@@ -76,7 +81,7 @@ def rasterize_map(vmap: VectorMap, size: int, m_per_px: float) -> np.ndarray:
         channels[name][hit_points(sel)[1]] = 1.0
     sel = [p for p, lane in zip(lane_polys, vmap.lanes, strict=True) if lane.is_intersection]
     channels["lane_intersection"][hit_points(sel)[1]] = 1.0
-    centrelines = [shapely.LineString(lane.centerline) for lane in vmap.lanes]
+    centrelines = [shapely.LineString(line) for line in lines]
     channels["lane_centerline"][hit_points([c.buffer(line_buffer) for c in centrelines])[1]] = 1.0
     crossable, uncrossable = [], []
     marked = [(lane.left, lane.left_mark) for lane in vmap.lanes]
@@ -97,19 +102,21 @@ def rasterize_map(vmap: VectorMap, size: int, m_per_px: float) -> np.ndarray:
         pairs = tree.query([lane_polys[i] for i in keep], predicate="intersects")
         for j in np.unique(pairs[0]):
             idx = pairs[1][pairs[0] == j]
-            cos, sin = _segment_direction(vmap.lanes[keep[j]].centerline, centers[idx])
+            cos, sin = _segment_direction(lines[keep[j]], centers[idx])
             channels["lane_orientation_cos"][idx] = cos
             channels["lane_orientation_sin"][idx] = sin
     # Nearest lane: direction of the nearest centreline segment, on and off the lanes (where
     # the vehicles parked beside a street or in a lot take their heading from its aisles).
     if centrelines:
-        pix, nearest = shapely.STRtree(centrelines).query_nearest(
-            points, max_distance=NEAREST_LANE_MAX_M, all_matches=False)
-        for j in np.unique(nearest):
-            idx = pix[nearest == j]
-            cos, sin = _segment_direction(vmap.lanes[j].centerline, centers[idx])
-            channels["nearest_lane_cos"][idx] = cos
-            channels["nearest_lane_sin"][idx] = sin
+        a = np.concatenate([line[:-1] for line in lines])
+        b = np.concatenate([line[1:] for line in lines])
+        block = max(2, round(NEAREST_BLOCK_M / m_per_px))
+        seg = _nearest_segments(centers, size, a, b, NEAREST_LANE_MAX_M, block)
+        hit = seg >= 0
+        d = b[seg[hit]] - a[seg[hit]]
+        d /= np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-12)[:, None]
+        channels["nearest_lane_cos"][hit] = d[:, 0]
+        channels["nearest_lane_sin"][hit] = d[:, 1]
 
     areas = [_valid(shapely.Polygon(p)) for p in vmap.drivable_areas if len(p) >= 3]
     channels["drivable_area"][hit_points(areas)[1]] = 1.0
@@ -118,20 +125,81 @@ def rasterize_map(vmap: VectorMap, size: int, m_per_px: float) -> np.ndarray:
     return np.stack([channels[c] for c in ALL_MAP_CHANNELS], -1).reshape(size, size, -1)
 
 
+def _point_segment_distance2(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Squared distance from points `p` [..., 2] to segments [a, b] ([..., 2], broadcast)."""
+    d = b - a
+    t = np.clip(((p - a) * d).sum(-1) / np.maximum((d**2).sum(-1), 1e-12), 0.0, 1.0)
+    e = p - (a + t[..., None] * d)
+    return (e**2).sum(-1)
+
+
+def _nearest_segments(centers: np.ndarray, size: int, a: np.ndarray, b: np.ndarray,
+                      max_m: float, block: int, chunk: int = 64) -> np.ndarray:
+    """Index of the segment [a, b] ([S, 2] each) nearest to each pixel centre ([size * size,
+    2], row-major), -1 where every segment is farther than `max_m`; of equally near segments
+    the first.
+
+    Block by block (`block` x `block` pixels of centre c and radius r, the farthest pixel
+    from c): a pixel p of the block with the nearest segment at d(p) <= d(c) + r has it
+    among the segments within d(c) + 2r of c (triangle inequality), so only those are
+    measured against the block's pixels. Shapely's nearest-geometry query over every pixel
+    took 0.39 s of a 320 x 320 raster's 0.57 s on an Argoverse 2 map, 3.4-4.6 s on a
+    womd_mini map; this takes 0.05 and 0.2 s (session 32, Xeon, one core)."""
+    rows = np.arange(size) // block
+    nb = int(rows[-1]) + 1
+    blocks = (rows[:, None] * nb + rows[None, :]).ravel()
+    order = np.argsort(blocks, kind="stable")  # pixels grouped by block
+    counts = np.bincount(blocks, minlength=nb * nb)
+    per = counts.max()
+    # Pixel indices per block, padded with its last pixel (written twice, the same value).
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    slot = np.minimum(np.arange(per)[None], counts[:, None] - 1)
+    pix = order[starts[:, None] + slot]  # [blocks, per]
+    c = centers[pix].mean(1)
+    r = np.hypot(*(centers[pix] - c[:, None]).transpose(2, 0, 1)).max(1)
+
+    segs = shapely.linestrings(np.stack([a, b], 1))
+    tree = shapely.STRtree(segs)
+    cpts = shapely.points(c)
+    (bi, _), dist = tree.query_nearest(cpts, max_distance=max_m + r.max(),
+                                       return_distance=True, all_matches=False)
+    near = np.full(len(c), np.inf)  # each block centre's distance to its nearest segment
+    near[bi] = dist
+    out = np.full(size * size, -1, np.int64)
+    live = np.flatnonzero(near <= max_m + r)
+    if not len(live):
+        return out
+    pairs = tree.query(cpts[live], predicate="dwithin", distance=near[live] + 2 * r[live] + 1e-6)
+    pb, ps = live[pairs[0]], pairs[1]
+    o = np.lexsort((ps, pb))  # by block, then segment index: ties go to the first segment
+    pb, ps = pb[o], ps[o]
+    k = np.bincount(pb, minlength=len(c))
+    first = np.concatenate([[0], np.cumsum(k)[:-1]])
+    live = live[np.argsort(k[live], kind="stable")]  # similar candidate counts in a chunk
+    for lo in range(0, len(live), chunk):
+        bl = live[lo : lo + chunk]
+        j = np.minimum(np.arange(k[bl].max())[None], k[bl, None] - 1)
+        cand = ps[first[bl, None] + j]  # [n, kmax], padded with the block's last candidate
+        p = centers[pix[bl]][:, :, None]  # [n, per, 1, 2]
+        dist2 = _point_segment_distance2(p, a[cand][:, None], b[cand][:, None])
+        best = np.argmin(dist2, -1)  # [n, per]
+        seg = np.take_along_axis(cand, best.reshape(len(bl), -1), 1)
+        within = np.take_along_axis(dist2, best[..., None], -1)[..., 0] <= max_m**2
+        out[pix[bl][within]] = seg[within]
+    return out
+
+
 def _segment_direction(line: np.ndarray, pts: np.ndarray,
                        chunk: int = 4096) -> tuple[np.ndarray, np.ndarray]:
     """(cos, sin) of the direction of the segment of `line` [P, 2] nearest to each point
     (`chunk` points at a time: a paper-grid canvas has 200,000)."""
     a, b = line[:-1], line[1:]
-    d = b - a
-    length2 = np.maximum((d**2).sum(-1), 1e-12)
     nearest = np.empty(len(pts), np.int64)
     for i in range(0, len(pts), chunk):
-        p = pts[i : i + chunk, None, :]
-        t = np.clip(((p - a[None]) * d[None]).sum(-1) / length2, 0.0, 1.0)
-        proj = a[None] + t[..., None] * d[None]
-        nearest[i : i + chunk] = np.argmin(((p - proj) ** 2).sum(-1), axis=1)
-    u = d[nearest] / np.sqrt(length2[nearest])[:, None]
+        dist2 = _point_segment_distance2(pts[i : i + chunk, None, :], a[None], b[None])
+        nearest[i : i + chunk] = np.argmin(dist2, axis=1)
+    d = (b - a)[nearest]
+    u = d / np.sqrt(np.maximum((d**2).sum(-1), 1e-12))[:, None]
     return u[:, 0], u[:, 1]
 
 
