@@ -17,9 +17,8 @@ $(VENV)/.installed: pyproject.toml
 	touch $@
 
 # Two pytest workers (one per core of the 2-core machines we test on), each taking whole
-# modules so that module fixtures are built once, the slowest modules first
-# (tests/conftest.py); TEST_WORKERS=0 runs the suite in this process. The suite's wall time
-# is printed at the end.
+# modules in collection order so that module fixtures are built once; TEST_WORKERS=0 runs
+# the suite in this process. The suite's wall time is printed at the end.
 TEST_WORKERS ?= 2
 
 test: install

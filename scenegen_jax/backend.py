@@ -91,6 +91,17 @@ def compiled_step_loop() -> bool:
     return not on_cpu()
 
 
+def explicit_conv_gradients() -> bool:
+    """Whether the model writes its convolutions' gradients in the form XLA:CPU's convolution
+    library takes (`model.network.conv`): on XLA:CPU where the unroll runs a compiled loop.
+    XLA:CPU rewrites the other forms of a convolution (those autodiff makes of its
+    gradients) into that one only outside loops (its ConvCanonicalization pass visits the
+    entry computation alone); inside a loop it emits them as plain loops, 10x slower at the
+    test suite's optimisation level (session 32: the `tiny` step's gradient with a compiled
+    step loop ran in 10 s, 0.8 s unrolled)."""
+    return on_cpu() and (compiled_window_loop() or compiled_step_loop())
+
+
 # XLA:CPU's compile-time preset: fewer LLVM optimisations of its generated kernels. The `cpu`
 # preset's train step compiled in 32 s instead of 40 s for the same step time (3.35 s, Zen 4);
 # the heavy work (convolutions, dots) runs in libraries either way (bench/README.md).

@@ -20,7 +20,11 @@ import jax.numpy as jnp
 import numpy as np
 from flax import errors
 
-from scenegen_jax.backend import init_compiler_options, weight_gradient_bands
+from scenegen_jax.backend import (
+    explicit_conv_gradients,
+    init_compiler_options,
+    weight_gradient_bands,
+)
 from scenegen_jax.config import Config
 from scenegen_jax.distributions import params as P
 from scenegen_jax.raster.actors import ACTOR_CHANNELS, window_origin, window_size
@@ -58,10 +62,32 @@ def _band_starts(rows: int, band_rows: int) -> list[int]:
     return [i * rows // n for i in range(n)] + [rows]
 
 
+def _same_pads(w) -> list[tuple[int, int]]:
+    """'SAME' padding of the two spatial axes for kernel w [kh, kw, Ci, Co]."""
+    return [((k - 1) // 2, k // 2) for k in w.shape[:2]]
+
+
+def _conv_input_grad(g, w):
+    """The input gradient of `_conv(x, w)` for the output gradient g [B, H, W, Co]: g
+    convolved with the kernel turned by 180 degrees and its features swapped, written in the
+    form XLA:CPU hands to its convolution library (NHWC, HWIO)."""
+    pads = [(hi, lo) for lo, hi in _same_pads(w)]
+    return _conv(g, jnp.flip(w, (0, 1)).swapaxes(2, 3), padding=pads)
+
+
+def _conv_weight_grad(xp, g):
+    """The weight gradient [kh, kw, Ci, Co] of the 'VALID' convolution of the padded input
+    xp [B, H + kh - 1, W + kw - 1, Ci] for its output gradient g [B, H, W, Co], in the same
+    library form: x's features as the batch, the batch as the features."""
+    return _conv(xp.transpose(3, 1, 2, 0), g.transpose(1, 2, 0, 3), padding="VALID").transpose(
+        1, 2, 0, 3)
+
+
 @functools.partial(jax.custom_vjp, nondiff_argnums=(2,))
 def _banded_conv(x, w, band_rows: int):
-    """`_conv(x, w)` whose weight gradient is a sum over bands of at most `band_rows` rows of
-    the input (each with the kernel's halo)."""
+    """`_conv(x, w)` whose gradients are written in the convolution library's form, the
+    weight gradient summed over bands of at most `band_rows` rows of the input (each with the
+    kernel's halo)."""
     return _conv(x, w)
 
 
@@ -71,17 +97,14 @@ def _banded_conv_fwd(x, w, band_rows):
 
 def _banded_conv_bwd(band_rows, res, g):
     x, w = res
-    dx = jax.vjp(lambda x: _conv(x, w), x)[1](g)[0]
-    kh, kw = w.shape[:2]
-    pad = [(0, 0), ((kh - 1) // 2, kh // 2), ((kw - 1) // 2, kw // 2), (0, 0)]  # as 'SAME'
-    xp = jnp.pad(x, pad)
+    xp = jnp.pad(x, [(0, 0), *_same_pads(w), (0, 0)])
+    kh = w.shape[0]
     starts = _band_starts(x.shape[1], band_rows)
     dw = jnp.zeros_like(w)
     for lo, hi in zip(starts[:-1], starts[1:], strict=True):
         band = jax.lax.slice_in_dim(xp, lo, hi + kh - 1, axis=1)  # the band and its halo
-        valid = functools.partial(_conv, band, padding="VALID")
-        dw = dw + jax.vjp(valid, w)[1](jax.lax.slice_in_dim(g, lo, hi, axis=1))[0]
-    return dx, dw
+        dw = dw + _conv_weight_grad(band, jax.lax.slice_in_dim(g, lo, hi, axis=1))
+    return _conv_input_grad(g, w), dw
 
 
 _banded_conv.defvjp(_banded_conv_fwd, _banded_conv_bwd)
@@ -90,10 +113,15 @@ _banded_conv.defvjp(_banded_conv_fwd, _banded_conv_bwd)
 def conv(x, w, b=None):
     """'SAME' stride-1 convolution, x [B, H, W, Ci], w [kh, kw, Ci, Co]. Where the backend
     bands weight gradients (`backend.weight_gradient_bands`) and x has more rows than its
-    threshold, the weight gradient is summed over row bands."""
+    threshold, the weight gradient is summed over row bands; where it wants the gradients in
+    its library's form (`backend.explicit_conv_gradients`), they are written so (one band)."""
     bands = weight_gradient_bands()
-    banded = bands is not None and x.shape[1] > bands[0]
-    y = _banded_conv(x, w, bands[1]) if banded else _conv(x, w)
+    if bands is not None and x.shape[1] > bands[0]:
+        y = _banded_conv(x, w, bands[1])
+    elif explicit_conv_gradients():
+        y = _banded_conv(x, w, x.shape[1])
+    else:
+        y = _conv(x, w)
     return y if b is None else y + b
 
 
