@@ -10,6 +10,7 @@ fills the same raster channels with the same meaning.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 
@@ -101,20 +102,35 @@ class VectorMap:
             lines=tuple(dataclasses.replace(line, points=f(line.points)) for line in self.lines),
         )
 
+    @functools.cached_property
+    def _boxes(self) -> dict[str, np.ndarray]:
+        """Per element kind, the [N, 4] boxes (min x, min y, max x, max y) of its elements,
+        computed once per map (readers crop one map for every frame)."""
+
+        def boxes(arrays) -> np.ndarray:
+            if not arrays:
+                return np.zeros((0, 4))
+            return np.array([np.concatenate([a.min(axis=0), a.max(axis=0)]) for a in arrays])
+
+        return {
+            "lanes": boxes([np.concatenate([lane.left, lane.right]) for lane in self.lanes]),
+            "crosswalks": boxes(self.crosswalks),
+            "drivable_areas": boxes(self.drivable_areas),
+            "lines": boxes([line.points for line in self.lines]),
+        }
+
     def crop(self, center: np.ndarray, radius: float) -> VectorMap:
         """Keeps the elements with a point within `radius` m (box test) of `center`."""
         c = np.asarray(center, np.float64)
 
-        def near(points: np.ndarray) -> bool:
-            lo, hi = points.min(axis=0), points.max(axis=0)
-            return bool(np.all(lo <= c + radius) and np.all(hi >= c - radius))
+        def keep(kind: str) -> tuple:
+            b = self._boxes[kind]
+            near = np.all(b[:, :2] <= c + radius, axis=1) & np.all(b[:, 2:] >= c - radius, axis=1)
+            items = getattr(self, kind)
+            return tuple(items[i] for i in np.flatnonzero(near))
 
-        return VectorMap(
-            lanes=tuple(lane for lane in self.lanes if near(lane.polygon)),
-            crosswalks=tuple(p for p in self.crosswalks if near(p)),
-            drivable_areas=tuple(p for p in self.drivable_areas if near(p)),
-            lines=tuple(line for line in self.lines if near(line.points)),
-        )
+        return VectorMap(lanes=keep("lanes"), crosswalks=keep("crosswalks"),
+                         drivable_areas=keep("drivable_areas"), lines=keep("lines"))
 
 
 def resample_polyline(points: np.ndarray, n: int) -> np.ndarray:

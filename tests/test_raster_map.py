@@ -92,6 +92,32 @@ def test_nearest_lane_points_along_the_nearest_centreline_up_to_its_range():
     np.testing.assert_allclose(cos[inside], r[inside, CH["lane_orientation_cos"]], atol=1e-6)
 
 
+def test_crop_keeps_the_elements_whose_box_reaches_the_square():
+    """`VectorMap.crop` keeps an element when its bounding box meets the square of half-side
+    `radius` around the centre (edges included), for every kind of element, and crops of one
+    map around different centres each see the whole map."""
+    from scenegen_jax.vector_map import RoadLine
+
+    def square(x, y, h=1.0):
+        return np.array([[x - h, y - h], [x + h, y - h], [x + h, y + h], [x - h, y + h]])
+
+    vmap = VectorMap(
+        lanes=(_lane(-30, -12, 0.0), _lane(13, 30, 0.0)),  # boxes x <= -12 and x >= 13
+        crosswalks=(square(0, 9),),  # box y in [8, 10]
+        drivable_areas=(square(50, 50, 45),),  # box [5, 95] x [5, 95]
+        lines=(RoadLine(np.array([[-5.0, -20.0], [5.0, -20.0]]), "SOLID_WHITE"),),
+    )
+    near = vmap.crop(np.zeros(2), 10.0)
+    assert len(near.lanes) == 0 and len(near.crosswalks) == 1
+    assert len(near.drivable_areas) == 1 and len(near.lines) == 0
+    edge = vmap.crop(np.zeros(2), 12.0)  # the first lane's box ends at x = -12: kept
+    assert [lane.right[0, 0] for lane in edge.lanes] == [-30.0]
+    far = vmap.crop(np.array([0.0, -20.0]), 1.0)
+    assert (len(far.lanes), len(far.crosswalks), len(far.drivable_areas), len(far.lines)) == (
+        0, 0, 0, 1)
+    assert len(vmap.crop(np.array([200.0, 0.0]), 10.0).lanes) == 0
+
+
 def _womd_frame(womd_root):
     import os
 
