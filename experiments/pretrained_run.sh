@@ -7,12 +7,16 @@
 # canonical order's channel, the map at the actor's bin as an attribute input (first and last
 # layer), the nearest lane's direction as two more map channels (the `nearest_lane` layers),
 # the heading mixture turned by that direction (`heading_lane_frame`) and a 50-step warm-up.
-# It is the ninth phase of the model's training: session 31 started it from the sixth
-# phase's step 950 (`INIT_FROM=cpu-av2-womd`, then the shipped model; the new channels'
-# weights start at zero and the heading MLP's last layer afresh; metrics of the sixth phase
+# It is the tenth phase of the model's training: session 32 started it from the ninth
+# phase's step 700 (the shipped model; INIT_FROM=runs/phase9_700, a copy of that workdir;
+# the ninth phase's metrics experiments/results/pretrained_run_phase9_metrics.jsonl), a
+# second decay at a third of the ninth phase's peak learning rate (1e-4) with a new seed:
+#   INIT_FROM=runs/phase9_700 experiments/pretrained_run.sh 700 1
+# The ninth phase (session 31, shipped as cpu-av2-womd) started from the sixth phase's
+# step 950 (`INIT_FROM=cpu-av2-womd`, then the shipped model; the new channels' weights
+# start at zero and the heading MLP's last layer afresh; metrics of the sixth phase
 # experiments/results/pretrained_run_decay_metrics.jsonl), with a peak learning rate of 3e-4
-# and otherwise the eighth phase's schedule and seed:
-#   INIT_FROM=cpu-av2-womd experiments/pretrained_run.sh 700 1
+# and otherwise the eighth phase's schedule and seed (decay_steps=650 seed=8).
 # The eighth phase (session 30, the same at the preset's peak learning rate of 1e-3, a cosine
 # decay to 0 over 650 steps after the warm-up, seed 8; metrics
 # experiments/results/pretrained_run_lane_frame_metrics.jsonl) learnt the headings but put
@@ -43,7 +47,11 @@
 # a copy of that workdir): NOMAP=1 INIT_FROM=DIR experiments/pretrained_run.sh 950 1 (its
 # metrics experiments/results/nomap_run_decay_metrics.jsonl). Session 30 started the same
 # schedule as the eighth phase's from that run's step 950 (INIT_FROM=runs/nomap_run_decay950,
-# a copy of that workdir): NOMAP=1 INIT_FROM=DIR experiments/pretrained_run.sh 700 1.
+# a copy of that workdir): NOMAP=1 INIT_FROM=DIR experiments/pretrained_run.sh 700 1. Session
+# 32 started the tenth phase's schedule from that run's step 700 (INIT_FROM=runs/nomap8_700;
+# its eighth phase's metrics experiments/results/nomap_run_phase8_metrics.jsonl), so that the
+# two models stay at equal steps:
+#   NOMAP=1 INIT_FROM=runs/nomap8_700 experiments/pretrained_run.sh 700 0
 # Usage: [NOMAP=1] experiments/pretrained_run.sh [STEPS] [CORE] [MINUTES]
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -59,14 +67,14 @@ prep() {  # SOURCE ROOT SPLIT OUT [prepare options]
 prep av2 "$SHARED/av2_sensor_mini" train runs/cache_cpu_av2_train --stride 1
 prep womd_json "$SHARED/womd_mini/gpudrive_json" train runs/cache_cpu_womdjson_train
 prep scenarionet "$SHARED/womd_mini/scenarionet" train runs/cache_cpu_womdpkl_train
-# The no-map run's last phase: the eighth phase's schedule and seed (learning rate 1e-3).
+# The tenth phase's schedule for both runs: peak learning rate 1e-4, decay over 650 steps.
+SCHEDULE="learning_rate=1e-4 decay_steps=650 seed=10"
 if [ -n "${NOMAP:-}" ]; then
-    WORKDIR=experiments/nomap_run INPUTS="map_layers=none decay_steps=650 seed=8"
+    WORKDIR=experiments/nomap_run INPUTS="map_layers=none $SCHEDULE"
 else
     WORKDIR=experiments/pretrained_run
     INPUTS="map_layers=lanes,drivable,crosswalks,nearest_lane attribute_map_input=true"
-    INPUTS="$INPUTS attribute_map_skip=true heading_lane_frame=true learning_rate=3e-4"
-    INPUTS="$INPUTS decay_steps=650 seed=8"
+    INPUTS="$INPUTS attribute_map_skip=true heading_lane_frame=true $SCHEDULE"
 fi
 XLA_FLAGS=--xla_cpu_multi_thread_eigen=false taskset -c "$CORE" $BIN/scenegen train \
     --config cpu --set coord_channels=true order_channel=true $INPUTS \
