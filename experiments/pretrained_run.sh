@@ -12,6 +12,8 @@
 # the ninth phase's metrics experiments/results/pretrained_run_phase9_metrics.jsonl), a
 # second decay at a third of the ninth phase's peak learning rate (1e-4) with a new seed:
 #   INIT_FROM=runs/phase9_700 experiments/pretrained_run.sh 700 1
+# It finished the same session with a better likelihood and worse samples on womd_mini, and
+# was not shipped (experiments/results/README.md, session 32).
 # The ninth phase (session 31, shipped as cpu-av2-womd) started from the sixth phase's
 # step 950 (`INIT_FROM=cpu-av2-womd`, then the shipped model; the new channels' weights
 # start at zero and the heading MLP's last layer afresh; metrics of the sixth phase
