@@ -7,7 +7,15 @@
 # canonical order's channel, the map at the actor's bin as an attribute input (first and last
 # layer), the nearest lane's direction as two more map channels (the `nearest_lane` layers),
 # the heading mixture turned by that direction (`heading_lane_frame`) and a 50-step warm-up.
-# It is the tenth phase of the model's training: session 32 started it from the ninth
+# Since session 33 both runs also read the `dataset` layers (which data set a scene comes
+# from; the no-map run's only layers): the eleventh phase, from the ninth phase's step 700
+# (the shipped model) and the no-map run's eighth phase's step 700, the new weights at zero,
+# peak learning rate 3e-4, decay over 350 steps, seed 11, 400 steps:
+#   INIT_FROM=runs/phase9_700 experiments/pretrained_run.sh 400 1
+#   NOMAP=1 INIT_FROM=runs/nomap8_700 experiments/pretrained_run.sh 400 0
+# (experiments/results/README.md, session 33). The tenth phase went to runs/phase10_700 and
+# runs/nomap10_700.
+# The tenth phase of the model's training: session 32 started it from the ninth
 # phase's step 700 (the shipped model; INIT_FROM=runs/phase9_700, a copy of that workdir;
 # the ninth phase's metrics experiments/results/pretrained_run_phase9_metrics.jsonl), a
 # second decay at a third of the ninth phase's peak learning rate (1e-4) with a new seed:
@@ -69,13 +77,13 @@ prep() {  # SOURCE ROOT SPLIT OUT [prepare options]
 prep av2 "$SHARED/av2_sensor_mini" train runs/cache_cpu_av2_train --stride 1
 prep womd_json "$SHARED/womd_mini/gpudrive_json" train runs/cache_cpu_womdjson_train
 prep scenarionet "$SHARED/womd_mini/scenarionet" train runs/cache_cpu_womdpkl_train
-# The tenth phase's schedule for both runs: peak learning rate 1e-4, decay over 650 steps.
-SCHEDULE="learning_rate=1e-4 decay_steps=650 seed=10"
+# The eleventh phase's schedule for both runs: peak learning rate 3e-4, decay over 350 steps.
+SCHEDULE="learning_rate=3e-4 decay_steps=350 seed=11"
 if [ -n "${NOMAP:-}" ]; then
-    WORKDIR=experiments/nomap_run INPUTS="map_layers=none $SCHEDULE"
+    WORKDIR=experiments/nomap_run INPUTS="map_layers=dataset $SCHEDULE"
 else
     WORKDIR=experiments/pretrained_run
-    INPUTS="map_layers=lanes,drivable,crosswalks,nearest_lane attribute_map_input=true"
+    INPUTS="map_layers=lanes,drivable,crosswalks,nearest_lane,dataset attribute_map_input=true"
     INPUTS="$INPUTS attribute_map_skip=true heading_lane_frame=true $SCHEDULE"
 fi
 XLA_FLAGS=--xla_cpu_multi_thread_eigen=false taskset -c "$CORE" $BIN/scenegen train \

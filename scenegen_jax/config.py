@@ -28,9 +28,16 @@ LAYER_GROUPS: dict[str, tuple[str, ...]] = {
     # Beyond the paper: the direction of the nearest lane centreline at every pixel, on and
     # off the lanes (`raster.map.NEAREST_LANE_MAX_M`).
     "nearest_lane": ("nearest_lane_cos", "nearest_lane_sin"),
+    # Beyond the paper: which data set the scene comes from, one constant plane per known
+    # data set (`DATASETS`), 1 on the scene's own (all 0 for another or an unknown one).
+    # Data sets differ in their annotation (Waymo's vehicle boxes are larger than Argoverse
+    # 2's) and in what their maps draw; a model trained on several can tell them apart.
+    "dataset": ("dataset_av2", "dataset_waymo"),
 }
+# The data sets of the "dataset" layers, as ScenarioNet names them (`metadata.dataset`).
+DATASETS: tuple[str, ...] = ("av2", "waymo")
 # Every group, in channel order: what a cache stores.
-ALL_LAYER_GROUPS: tuple[str, ...] = ("lanes", "drivable", "crosswalks", "nearest_lane")
+ALL_LAYER_GROUPS: tuple[str, ...] = ("lanes", "drivable", "crosswalks", "nearest_lane", "dataset")
 # The paper's map layers: the presets' default.
 PAPER_LAYER_GROUPS: tuple[str, ...] = ("lanes", "drivable", "crosswalks")
 

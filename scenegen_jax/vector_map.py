@@ -77,12 +77,14 @@ class RoadLine:
 
 @dataclasses.dataclass(frozen=True)
 class VectorMap:
-    """Lanes, standalone lines, crosswalk and drivable-area polygons (all [P, 2] arrays, m)."""
+    """Lanes, standalone lines, crosswalk and drivable-area polygons (all [P, 2] arrays, m),
+    and the data set the map comes from (`config.DATASETS`; "" where its files do not say)."""
 
     lanes: tuple[Lane, ...] = ()
     crosswalks: tuple[np.ndarray, ...] = ()
     drivable_areas: tuple[np.ndarray, ...] = ()
     lines: tuple[RoadLine, ...] = ()
+    dataset: str = ""
 
     def transform(self, rotation: np.ndarray, translation: np.ndarray) -> VectorMap:
         """Applies p -> rotation @ p + translation to every point."""
@@ -100,6 +102,7 @@ class VectorMap:
             crosswalks=tuple(f(p) for p in self.crosswalks),
             drivable_areas=tuple(f(p) for p in self.drivable_areas),
             lines=tuple(dataclasses.replace(line, points=f(line.points)) for line in self.lines),
+            dataset=self.dataset,
         )
 
     @functools.cached_property
@@ -130,7 +133,8 @@ class VectorMap:
             return tuple(items[i] for i in np.flatnonzero(near))
 
         return VectorMap(lanes=keep("lanes"), crosswalks=keep("crosswalks"),
-                         drivable_areas=keep("drivable_areas"), lines=keep("lines"))
+                         drivable_areas=keep("drivable_areas"), lines=keep("lines"),
+                         dataset=self.dataset)
 
 
 def resample_polyline(points: np.ndarray, n: int) -> np.ndarray:

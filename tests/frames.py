@@ -53,4 +53,6 @@ def frame_differences(a: Frame, b: Frame, atol: float = 1e-4) -> list[str]:
         p.mark == q.mark and close(p.points, q.points) for p, q in zip(la, lb, strict=True)
     ):
         diffs.append("map.lines")
+    if a.map.dataset != b.map.dataset:
+        diffs.append(f"map.dataset: {a.map.dataset!r} != {b.map.dataset!r}")
     return diffs

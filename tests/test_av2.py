@@ -368,3 +368,4 @@ def test_map_polygons_match_shapely_area(all_frames):
     union = shapely.union_all([shapely.Polygon(p).buffer(0) for p in f.map.drivable_areas])
     clipped = union.intersection(shapely.box(-40, -40, 40, 40))
     assert raster.sum() * res * res == pytest.approx(clipped.area, rel=0.02)
+    assert {g.map.dataset for frames, _ in all_frames.values() for g in frames} == {"av2"}

@@ -41,6 +41,21 @@ def test_square_drivable_area_pixel_count():
     assert d[:20, 20:].sum() == 400 and d[20:, :].sum() == 0
 
 
+@pytest.mark.parametrize("dataset", ["av2", "waymo", "", "nuscenes"])
+def test_dataset_planes_are_one_on_the_maps_own_data_set(dataset):
+    square = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]])
+    r = rasterize_map(VectorMap(drivable_areas=(square,), dataset=dataset), 40, 0.5)
+    assert r[..., CH["dataset_av2"]].tolist() == np.full((40, 40), dataset == "av2").tolist()
+    assert r[..., CH["dataset_waymo"]].tolist() == np.full((40, 40), dataset == "waymo").tolist()
+    # the map's other channels do not depend on it
+    other = [i for name, i in CH.items() if not name.startswith("dataset_")]
+    plain = rasterize_map(VectorMap(drivable_areas=(square,)), 40, 0.5)
+    assert np.array_equal(r[..., other], plain[..., other])
+    # cropping and moving the map keep it
+    moved = VectorMap(dataset=dataset).transform(rotation_matrix(0.3), np.ones(2))
+    assert moved.crop(np.zeros(2), 5.0).dataset == dataset
+
+
 def test_lane_channels_orientation_and_marks():
     lane = _lane(
         -10, 10, 0.0, left_mark="SOLID_YELLOW", right_mark="DASHED_WHITE", is_intersection=True

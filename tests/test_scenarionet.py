@@ -13,6 +13,7 @@ import scenarionet_fixtures as fx
 import shapely
 from frames import frame_differences
 
+from scenegen_jax.config import DATASETS
 from scenegen_jax.data import scenarionet as sn
 from scenegen_jax.data.safe_pickle import (
     CorruptPickleError,
@@ -692,6 +693,7 @@ def test_real_argoverse_scene_round_trip(all_frames, tmp_path):
         sn.write_scenario(sn.scenario_from_frame(frame, frame.scene_id), path)
         [(back, dropped)] = sn.frames_from_scenario(sn.read_scenario(path), str(path))
         assert frame_differences(frame, back) == [] and not dropped
+        assert back.map.dataset == "av2"
 
 
 # ----------------------------------------------------------------------------- real converters
@@ -745,6 +747,12 @@ def test_converter_output_imports(name):
     # lanes follow the ego's direction
     assert _raster_at(raster, "lane_orientation_cos", (0.0, 0.0)) > 0.99
     assert sn.scenario_sample_rate_hz(f.scenario) == pytest.approx(f.sample_rate_hz, rel=1e-4)
+    # the data set planes: the converter's metadata.dataset where the model knows it
+    dataset = f.scenario.get("metadata", {}).get("dataset", "")
+    assert vmap.dataset == dataset
+    for known in DATASETS:
+        plane = raster[..., ALL_MAP_CHANNELS.index(f"dataset_{known}")]
+        assert np.all(plane == float(known == dataset)), (known, dataset)
 
 
 def test_converter_lane_outlines():
@@ -917,6 +925,16 @@ def test_womd_every_pickle_imports_every_stride_frame(womd):
         want = [t for t in range(0, n, WOMD_STRIDE) if valid[t]]
         assert [int(g.frame.scene_id.rsplit("/", 1)[1]) for g in frames] == want, name
         assert sn.scenario_sample_rate_hz(scenario) == pytest.approx(10.0, rel=0.01), name
+
+
+def test_womd_maps_know_their_data_set_where_the_file_says(womd):
+    """S1 and S2 carry metadata.dataset "waymo"; S3 and S4 have no metadata (README)."""
+    datasets = collections.Counter()
+    for name, (scenario, frames) in womd.items():
+        want = scenario.get("metadata", {}).get("dataset", "")
+        assert {f.map.dataset for f, _ in frames} == {want}, name
+        datasets[want] += 1
+    assert datasets == {"waymo": 13, "": 5}
 
 
 def test_womd_actor_counts_equal_the_files_tracks(womd):

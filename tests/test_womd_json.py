@@ -244,6 +244,7 @@ def test_real_maps_have_lanes_lines_and_surface(womd_frames):
     for path, (frames, _) in womd_frames.items():
         f = frames[0]
         assert f.map.lanes and f.map.drivable_areas, path
+        assert f.map.dataset == "waymo", path
 
 
 def test_prepare_counts_and_skips_a_corrupt_file(tmp_path, womd_files):

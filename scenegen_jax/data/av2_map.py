@@ -155,5 +155,6 @@ def vector_map_from_json(data: dict, path: str) -> tuple[VectorMap, collections.
             dropped["map:degenerate_drivable_area"] += 1
     for reason, n in sorted(dropped.items()):
         log.warning("%s: %d map elements dropped (%s)", path, n, reason)
-    vmap = VectorMap(lanes=tuple(lanes), crosswalks=tuple(crosswalks), drivable_areas=tuple(areas))
+    vmap = VectorMap(lanes=tuple(lanes), crosswalks=tuple(crosswalks),
+                     drivable_areas=tuple(areas), dataset="av2")
     return vmap, dropped

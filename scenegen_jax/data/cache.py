@@ -35,7 +35,7 @@ from scenegen_jax.raster.map import ALL_MAP_CHANNELS, rasterize_map
 from scenegen_jax.scene import CLASS_NAMES, Actors, in_region, make_ego
 
 log = logging.getLogger(__name__)
-CACHE_VERSION = 2  # 2: the nearest lane channels
+CACHE_VERSION = 3  # 2: the nearest lane channels; 3: the data set channels
 ACTOR_FIELDS = ("cls", "position", "size", "heading", "velocity", "valid")
 
 

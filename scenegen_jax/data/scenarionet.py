@@ -78,6 +78,7 @@ from scenegen_jax.data.scenarionet_schema import (
     LINE_TYPE_FROM_MARK,
     MAPPING_FILE,
     MARK_FROM_LINE_TYPE,
+    OWN_DATASET,
     SUMMARY_FILE,
     TOP_LEVEL_KEYS,
     TYPE_FROM_CLASS,
@@ -218,7 +219,9 @@ def frames_from_scenario(
     sdc = read[sdc_id]
     steps = _steps(time_index, all_steps, stride, sdc, meta, length, source)
 
-    world_map, map_dropped = map_from_features(_get(scenario, "map_features", source, ""), source)
+    dataset = str(meta.get("dataset", ""))
+    world_map, map_dropped = map_from_features(_get(scenario, "map_features", source, ""), source,
+                                               "" if dataset == OWN_DATASET else dataset)
     city_from_world = np.asarray(meta.get("scenegen_city_from_world", np.eye(3)), np.float64)
     if city_from_world.shape != (3, 3) or not np.all(np.isfinite(city_from_world)):
         raise _err(source, "metadata.scenegen_city_from_world", "expected a finite 3x3 matrix")

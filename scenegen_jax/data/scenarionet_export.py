@@ -23,6 +23,7 @@ from scenegen_jax.data.safe_pickle import dump_pickle, load_pickle
 from scenegen_jax.data.scenarionet_schema import (
     LINE_TYPE_FROM_MARK,
     MAPPING_FILE,
+    OWN_DATASET,
     SUMMARY_FILE,
     TOP_LEVEL_KEYS,
     TYPE_FROM_CLASS,
@@ -201,14 +202,16 @@ def map_features_from_vector_map(vmap: VectorMap) -> dict[str, dict]:
     return features
 
 
-def scenario_from_frame(frame: Frame, scenario_id: str, dataset: str = "scenegen") -> dict:
+def scenario_from_frame(frame: Frame, scenario_id: str, dataset: str | None = None) -> dict:
     """A one-step ScenarioNet scenario of a Frame, in the ego frame (SDC at the origin, heading 0).
+    `dataset` (`metadata.dataset`) defaults to the frame's map's, else `OWN_DATASET`.
 
     The ego is the SDC track (type VEHICLE); actors keep their track ids (empty ids become
     "actor_<i>"). Raises ValueError naming the frame's source for NaN/inf, bad shapes, unknown
     classes, non-positive box sizes or duplicate track ids.
     """
     _check_frame(frame)
+    dataset = dataset or frame.map.dataset or OWN_DATASET
     where = f"{frame.source or frame.scene_id}: frame"
     ids = [str(t) if str(t) else f"actor_{i}" for i, t in enumerate(np.asarray(frame.track_id))]
     if len(set(ids)) != len(ids):

@@ -246,8 +246,10 @@ def _outline(real: Sequence[_RealLane], lines: Sequence[RoadLine]) -> tuple[list
     return lanes, drivable
 
 
-def map_from_features(map_features: Mapping, source: str) -> tuple[VectorMap, collections.Counter]:
+def map_from_features(map_features: Mapping, source: str,
+                      dataset: str = "") -> tuple[VectorMap, collections.Counter]:
     """The VectorMap (in the scenario's world frame) and counts of unusable features.
+    `dataset` is the scenario's `metadata.dataset` ("" where it has none).
 
     Our own exports: lanes, lines, crosswalks and drivable areas come exactly from their
     `scenegen_*` extras; our lane-boundary features are part of their lanes.
@@ -347,5 +349,6 @@ def map_from_features(map_features: Mapping, source: str) -> tuple[VectorMap, co
         crosswalks=tuple(crosswalks),
         drivable_areas=tuple(own_drivable) + tuple(lane_areas) + tuple(driveways),
         lines=tuple(lines),
+        dataset=dataset,
     )
     return vmap, dropped

@@ -18,6 +18,9 @@ from scenegen_jax.scene import BICYCLIST, PEDESTRIAN, VEHICLE
 SUMMARY_FILE = "dataset_summary.pkl"
 MAPPING_FILE = "dataset_mapping.pkl"
 TOP_LEVEL_KEYS = ("id", "version", "length", "tracks", "map_features", "metadata")
+# `metadata.dataset` of our own exports of scenes whose data set is not known (a map's
+# `dataset` ""), read back as "".
+OWN_DATASET = "scenegen"
 
 CLASS_FROM_TYPE: dict[str, int] = {
     "VEHICLE": VEHICLE,

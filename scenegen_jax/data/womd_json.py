@@ -294,6 +294,7 @@ def read_map(roads: Any, source: str) -> tuple[VectorMap, collections.Counter]:
         crosswalks=tuple(crosswalks),
         drivable_areas=surface + tuple(driveways),
         lines=tuple(lines),
+        dataset="waymo",  # GPUDrive's and Nocturne's JSON scenes are WOMD's
     )
     return vmap, dropped
 

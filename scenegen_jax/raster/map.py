@@ -12,7 +12,7 @@ import functools
 import numpy as np
 import shapely
 
-from scenegen_jax.config import ALL_LAYER_GROUPS, LAYER_GROUPS, Config
+from scenegen_jax.config import ALL_LAYER_GROUPS, DATASETS, LAYER_GROUPS, Config
 from scenegen_jax.scene import pixel_centers
 from scenegen_jax.vector_map import VectorMap, is_crossable
 
@@ -50,7 +50,8 @@ def rasterize_map(vmap: VectorMap, size: int, m_per_px: float) -> np.ndarray:
       float32 [size, size, len(ALL_MAP_CHANNELS)]; binary channels in {0, 1}, lane
       orientation (cos, sin) of the lane direction inside lane polygons, 0 elsewhere;
       nearest lane (cos, sin) of the nearest centreline's direction within
-      `NEAREST_LANE_MAX_M`, 0 farther.
+      `NEAREST_LANE_MAX_M`, 0 farther; the plane of the map's data set (`vmap.dataset`) 1
+      everywhere, the other data sets' 0.
     """
     n = size * size
     centers, points = _grid_points(size, m_per_px)  # cached per grid
@@ -122,6 +123,8 @@ def rasterize_map(vmap: VectorMap, size: int, m_per_px: float) -> np.ndarray:
     channels["drivable_area"][hit_points(areas)[1]] = 1.0
     walks = [_valid(shapely.Polygon(p)) for p in vmap.crosswalks if len(p) >= 3]
     channels["crosswalk"][hit_points(walks)[1]] = 1.0
+    if vmap.dataset in DATASETS:
+        channels[LAYER_GROUPS["dataset"][DATASETS.index(vmap.dataset)]][:] = 1.0
     return np.stack([channels[c] for c in ALL_MAP_CHANNELS], -1).reshape(size, size, -1)
 
 
