@@ -78,7 +78,8 @@ class RoadLine:
 @dataclasses.dataclass(frozen=True)
 class VectorMap:
     """Lanes, standalone lines, crosswalk and drivable-area polygons (all [P, 2] arrays, m),
-    and the data set the map comes from (`config.DATASETS`; "" where its files do not say)."""
+    and the data set the map comes from, as ScenarioNet names it ("" where its files do not
+    say; the `dataset` map layers know those of `config.DATASETS`)."""
 
     lanes: tuple[Lane, ...] = ()
     crosswalks: tuple[np.ndarray, ...] = ()
