@@ -8,13 +8,18 @@
 # layer), the nearest lane's direction as two more map channels (the `nearest_lane` layers),
 # the heading mixture turned by that direction (`heading_lane_frame`) and a 50-step warm-up.
 # Since session 33 both runs also read the `dataset` layers (which data set a scene comes
-# from; the no-map run's only layers): the eleventh phase, from the ninth phase's step 700
-# (the shipped model) and the no-map run's eighth phase's step 700, the new weights at zero,
-# peak learning rate 3e-4, decay over 350 steps, seed 11, 400 steps:
-#   INIT_FROM=runs/phase9_700 experiments/pretrained_run.sh 400 1
-#   NOMAP=1 INIT_FROM=runs/nomap8_700 experiments/pretrained_run.sh 400 0
-# (experiments/results/README.md, session 33). The tenth phase went to runs/phase10_700 and
-# runs/nomap10_700.
+# from; the no-map run's only layers). The twelfth phase (session 33) trains only their
+# weights (`train_layers=dataset`), from the ninth phase's step 700 and the no-map run's
+# eighth phase's step 700, the new weights at zero: peak learning rate 1e-3, decay over 250
+# steps, seed 12, 300 steps (session 33 ran the same `scenegen train` on both cores):
+#   INIT_FROM=runs/phase9_700 experiments/pretrained_run.sh 300 1
+#   NOMAP=1 INIT_FROM=runs/nomap8_700 experiments/pretrained_run.sh 300 0
+# Its step 300 is the shipped cpu-av2-womd (experiments/results/README.md, session 33).
+# The eleventh phase (session 33, the same start with every weight training, peak 3e-4,
+# decay over 350 steps, seed 11, 400 steps; metrics
+# experiments/results/{pretrained,nomap}_run_phase11_metrics.jsonl) got a better likelihood
+# and worse samples, and was not shipped (experiments/results/README.md, session 33). The
+# tenth phase went to runs/phase10_700 and runs/nomap10_700.
 # The tenth phase of the model's training: session 32 started it from the ninth
 # phase's step 700 (the shipped model; INIT_FROM=runs/phase9_700, a copy of that workdir;
 # the ninth phase's metrics experiments/results/pretrained_run_phase9_metrics.jsonl), a
@@ -77,8 +82,9 @@ prep() {  # SOURCE ROOT SPLIT OUT [prepare options]
 prep av2 "$SHARED/av2_sensor_mini" train runs/cache_cpu_av2_train --stride 1
 prep womd_json "$SHARED/womd_mini/gpudrive_json" train runs/cache_cpu_womdjson_train
 prep scenarionet "$SHARED/womd_mini/scenarionet" train runs/cache_cpu_womdpkl_train
-# The eleventh phase's schedule for both runs: peak learning rate 3e-4, decay over 350 steps.
-SCHEDULE="learning_rate=3e-4 decay_steps=350 seed=11"
+# The twelfth phase's schedule for both runs: the `dataset` layers' weights only, peak
+# learning rate 1e-3, decay over 250 steps.
+SCHEDULE="train_layers=dataset learning_rate=1e-3 decay_steps=250 seed=12"
 if [ -n "${NOMAP:-}" ]; then
     WORKDIR=experiments/nomap_run INPUTS="map_layers=dataset $SCHEDULE"
 else

@@ -44,7 +44,8 @@ PAPER_LAYER_GROUPS: tuple[str, ...] = ("lanes", "drivable", "crosswalks")
 
 # Fields that only training reads (the scorer and the sampler see `Config.inference()`).
 TRAINING_ONLY = ("name", "hard_negatives", "batch_size", "learning_rate", "warmup_steps",
-                 "decay_steps", "grad_clip", "rotate_augment", "map_dropout", "remat", "seed")
+                 "decay_steps", "grad_clip", "rotate_augment", "map_dropout", "remat",
+                 "train_layers", "seed")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -92,6 +93,11 @@ class Config:
       map_dropout: probability that a training scene's map channels are all zeroed (beyond the
         paper): the model must then place actors from the actors alone, as a model without a
         map does, instead of only memorising where vehicles stand on the training maps.
+      train_layers: map layer groups (of `map_layers`) whose weights alone train (beyond the
+        paper; fine-tuning): every other parameter, and the weights of every other map
+        channel, keep the values the run starts from. For a model extended with a layer group
+        by `--init-from` (its new weights start at zero), e.g. the `dataset` layers. Empty
+        (the default): every parameter trains.
       remat: recompute the backbone and heads in the train step's backward pass instead of
         storing their activations (same values and gradients; less memory, more compute).
       coord_channels: two more input channels, each pixel's row and column in [-1, 1]
@@ -160,6 +166,7 @@ class Config:
     rotate_augment: bool = True
     map_dropout: float = 0.0
     remat: bool = False
+    train_layers: tuple[str, ...] = ()
     coord_channels: bool = False
     orientation_bins: int = 0
     order_channel: bool = False
@@ -259,6 +266,9 @@ def config_problems(cfg: Config) -> list[str]:
     unknown = sorted(set(named) - set(LAYER_GROUPS))
     if unknown:
         out.append(f"map_layers: unknown groups {unknown}; known: {list(ALL_LAYER_GROUPS)}")
+    absent = [g for g in cfg.train_layers if g not in cfg.map_layers]
+    if absent:
+        out.append(f"train_layers: {absent} not in map_layers {list(cfg.map_layers)}")
     positive_ints = ("grid_size", "max_actors", "hidden", "backbone_layers", "gn_groups",
                      "num_mixtures", "hard_negatives", "bptt_window", "batch_size", "proposals")
     for name in positive_ints:

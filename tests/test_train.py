@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from flax.traverse_util import flatten_dict
 from small import CFG, random_params, train_cmd, two_small_scenes, with_xla_flags
 
 from scenegen_jax.likelihood.batch import Batch, check_batch, crop_batch, gather_batch
@@ -305,6 +306,33 @@ def test_map_dropout_trains_as_on_a_blank_map(tiny_train_cache, small_scenes):
     assert abs(float(dropped["loss"]) - float(with_map["loss"])) > 1e-3
     with pytest.raises(ValueError, match="map_dropout"):
         CFG.replace(map_dropout=1.5)
+
+
+def test_train_layers_trains_only_the_weights_of_those_map_channels(tiny_train_cache,
+                                                                    small_scenes):
+    cfg = CFG.replace(map_layers=("lanes", "drivable", "crosswalks"), attribute_map_input=True,
+                      separate_attribute_mlps=True, train_layers=("drivable",), learning_rate=1e-2)
+    batch = jax.device_put(_batch(tiny_train_cache, small_scenes))
+    state = init_state(cfg)
+    start = flatten_dict(jax.tree.map(np.array, state.params), sep="/")
+    new, _ = train_step(state, batch, cfg)
+    end = flatten_dict(new.params, sep="/")
+    drivable = cfg.map_channels.index("drivable_area")
+    changed = []
+    for name, before in start.items():
+        after = np.asarray(end[name])
+        if name == "lstm1_map" or name.endswith("0_map_w"):
+            axis = 2 if name == "lstm1_map" else 1
+            others = np.delete(after, drivable, axis) == np.delete(before, drivable, axis)
+            assert np.all(others), name
+            if np.any(np.take(after, drivable, axis) != np.take(before, drivable, axis)):
+                changed.append(name)
+        else:
+            assert np.array_equal(after, before), name
+    # the drivable channel's weights move in layer 1's input and in each attribute MLP
+    assert sorted(changed) == ["box0_map_w", "heading0_map_w", "lstm1_map", "velocity0_map_w"]
+    with pytest.raises(ValueError, match="train_layers"):
+        cfg.replace(train_layers=("nearest_lane",))
 
 
 def test_warm_start_extends_a_model_without_map_layers(tiny_train_cache, small_scenes):

@@ -33,6 +33,9 @@ from scenegen_jax.scene import NUM_CLASSES
 
 NUM_ACTOR_CHANNELS = len(ACTOR_CHANNELS)
 ATTRIBUTES = ("box", "heading", "velocity")  # the attribute heads, in output order
+# The parameters that read the map channels, and the axis of the channels in each.
+MAP_CHANNEL_AXIS = {"lstm1_map": 2, **{f"{name}{layer}_map_w": 1
+                                       for name in ATTRIBUTES for layer in (0, 2)}}
 
 
 def attribute_sizes(k: int) -> tuple[int, int, int]:

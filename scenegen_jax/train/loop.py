@@ -24,7 +24,7 @@ from scenegen_jax.data.union import CacheUnion, load_union
 from scenegen_jax.distributions import TERMS
 from scenegen_jax.likelihood.batch import check_batch, gather_batch, local_rows, to_device
 from scenegen_jax.likelihood.terms import VEHICLE_TERMS
-from scenegen_jax.model.network import ATTRIBUTES
+from scenegen_jax.model.network import ATTRIBUTES, MAP_CHANNEL_AXIS
 from scenegen_jax.pretrained import load_pretrained
 from scenegen_jax.scene import CLASS_NAMES
 from scenegen_jax.train.data import resolve_weights, union_indices
@@ -258,9 +258,6 @@ def train(
 ZERO_IF_MISSING = ("lstm1_map", "lstm1_coord", "lstm1_orient", "lstm1_order",
                    *(f"{name}{layer}_map_w" for name in ATTRIBUTES for layer in (0, 2)))
 SHARED_ATTRIBUTE_MLP = "attr"  # its parameters' prefix (`separate_attribute_mlps` false)
-# The axis of the map channels in the parameters that read them.
-MAP_CHANNEL_AXIS = {"lstm1_map": 2, **{f"{name}{layer}_map_w": 1
-                                       for name in ATTRIBUTES for layer in (0, 2)}}
 
 
 def widen_map_channels(source: dict, channels: tuple[str, ...],

@@ -8,6 +8,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from jax.flatten_util import ravel_pytree
 from jax.sharding import Mesh, NamedSharding
@@ -20,7 +21,7 @@ from scenegen_jax.backend import (
     release_freed_memory,
     train_compiler_options,
 )
-from scenegen_jax.config import Config
+from scenegen_jax.config import LAYER_GROUPS, Config
 from scenegen_jax.likelihood.batch import Batch, crop_batch
 from scenegen_jax.likelihood.terms import mean_nll
 from scenegen_jax.likelihood.unroll import (
@@ -34,7 +35,7 @@ from scenegen_jax.likelihood.unroll import (
     unroll_terms,
     unroll_terms_and_grads,
 )
-from scenegen_jax.model.network import init_params
+from scenegen_jax.model.network import MAP_CHANNEL_AXIS, init_params
 
 
 class TrainState(NamedTuple):
@@ -53,11 +54,40 @@ class TrainState(NamedTuple):
 
 
 def make_optimizer(cfg: Config) -> optax.GradientTransformation:
-    """Adam with global-norm clipping and the learning-rate schedule `learning_rate_at`."""
+    """Adam with global-norm clipping and the learning-rate schedule `learning_rate_at`; with
+    `train_layers`, the gradients first masked to those layers' weights
+    (`train_layers_mask`)."""
     adam = optax.adam(learning_rate_at(cfg))
     if cfg.grad_clip > 0:
-        return optax.chain(optax.clip_by_global_norm(cfg.grad_clip), adam)
+        adam = optax.chain(optax.clip_by_global_norm(cfg.grad_clip), adam)
+    if cfg.train_layers:
+        return optax.chain(_masked(functools.partial(train_layers_mask, cfg)), adam)
     return adam
+
+
+def train_layers_mask(cfg: Config, params):
+    """1 on the weights that read the map channels of `cfg.train_layers` (`MAP_CHANNEL_AXIS`),
+    0 on every other entry of every parameter: numpy arrays shaped as `params`."""
+    channels = [cfg.map_channels.index(c) for g in cfg.train_layers for c in LAYER_GROUPS[g]]
+
+    def mask(path, x):
+        m = np.zeros(x.shape, np.float32)
+        axis = MAP_CHANNEL_AXIS.get(path[0].key)
+        if axis is not None:
+            m[(slice(None),) * axis + (channels,)] = 1.0
+        return m
+
+    return jax.tree_util.tree_map_with_path(mask, params)
+
+
+def _masked(mask_of) -> optax.GradientTransformation:
+    """Multiplies the updates by `mask_of(updates)` (stateless: Adam then sees zero gradients
+    outside the mask, and its step there is 0)."""
+
+    def update(updates, state, params=None):
+        return jax.tree.map(lambda u, m: u * m, updates, mask_of(updates)), state
+
+    return optax.GradientTransformation(lambda params: optax.EmptyState(), update)
 
 
 def learning_rate_at(cfg: Config) -> float | optax.Schedule:
