@@ -15,6 +15,10 @@
 #   INIT_FROM=runs/phase9_700 experiments/pretrained_run.sh 300 1
 #   NOMAP=1 INIT_FROM=runs/nomap8_700 experiments/pretrained_run.sh 300 0
 # Its step 300 is the shipped cpu-av2-womd (experiments/results/README.md, session 33).
+# runs/phase9_700 and runs/nomap8_700 are not committed; on a fresh clone the ninth phase is
+# the package's model at commit b217040 and the no-map eighth phase the run at bff20b5:
+#   git worktree add /tmp/p9 b217040; INIT_FROM=/tmp/p9/scenegen_jax/pretrained/cpu-av2-womd
+#   git worktree add /tmp/n8 bff20b5; INIT_FROM=/tmp/n8/experiments/nomap_run
 # The eleventh phase (session 33, the same start with every weight training, peak 3e-4,
 # decay over 350 steps, seed 11, 400 steps; metrics
 # experiments/results/{pretrained,nomap}_run_phase11_metrics.jsonl) got a better likelihood
