@@ -7,7 +7,14 @@ metres away, at parking lots and driveways.
     .venv/bin/python experiments/off_road_distance.py --cache runs/cache_cpu_av2_val \
         --samples OUT/scenes.jsonl
 
-(`OUT` from `scenegen sample --data` the same cache.)
+(`OUT` from `scenegen sample --data` the same cache.) Without `--samples` it measures the
+cache's own (real) actors; `--class` picks another class than vehicles, for example
+
+    .venv/bin/python experiments/off_road_distance.py --cache runs/cache_cpu_av2_train \
+        --class bicyclist
+
+`distance_m_percentiles` are over the actors off the drivable area, `all_distance_m_percentiles`
+over every counted actor (0 on the drivable area).
 """
 
 from __future__ import annotations
@@ -26,40 +33,63 @@ RADIUS_M = 40.0
 PERCENTILES = (25, 50, 75, 90)
 
 
-def off_road_distances(cache_path: str, samples_path: str) -> tuple[int, np.ndarray, float]:
-    """(vehicles within `RADIUS_M` on the canvas, distances (m) of those off the drivable
-    area to its nearest pixel, the canvas's m per pixel)."""
-    cache = load_cache(cache_path)
-    m = float(cache.meta["m_per_px"])
-    drivable = ALL_MAP_CHANNELS.index("drivable_area")
-    counted, out = 0, []
+def sampled_scenes(samples_path: str, cls: str):
+    """(map index, [(x, y)] of the actors of class `cls`) of each scene of a samples JSONL."""
     with open(samples_path) as f:
         for line in f:
             scene = json.loads(line)
-            road = np.asarray(cache.maps[scene["map_index"]][..., drivable]) >= 0.5
-            half = road.shape[0] * m / 2
-            distance = distance_transform_edt(~road) * m
-            for a in scene["actors"]:
-                if a["class"] != CLASS_NAMES[VEHICLE] or np.hypot(a["x"], a["y"]) >= RADIUS_M:
-                    continue
-                row, col = int((half - a["y"]) // m), int((a["x"] + half) // m)
-                if 0 <= row < road.shape[0] and 0 <= col < road.shape[1]:
-                    counted += 1
-                    if not road[row, col]:
-                        out.append(distance[row, col])
-    return counted, np.array(out), m
+            yield scene["map_index"], [(a["x"], a["y"]) for a in scene["actors"]
+                                       if a["class"] == cls]
+
+
+def real_scenes(cache, cls: str):
+    """The same for the cache's own scenes."""
+    actors = cache.actors
+    for i in range(len(cache)):
+        sel = np.asarray(actors.valid[i]) & (np.asarray(actors.cls[i]) == CLASS_NAMES.index(cls))
+        yield i, [tuple(p) for p in np.asarray(actors.position[i], np.float64)[sel]]
+
+
+def road_distances(cache, scenes) -> tuple[np.ndarray, float]:
+    """(distances (m) to the nearest drivable pixel of the cache's canvas, 0 on it, of every
+    actor of `scenes` within `RADIUS_M` of the ego whose centre lies on the canvas, the
+    canvas's m per pixel)."""
+    m = float(cache.meta["m_per_px"])
+    drivable = ALL_MAP_CHANNELS.index("drivable_area")
+    out = []
+    for map_index, positions in scenes:
+        road = np.asarray(cache.maps[map_index][..., drivable]) >= 0.5
+        half = road.shape[0] * m / 2
+        distance = distance_transform_edt(~road) * m
+        for x, y in positions:
+            if np.hypot(x, y) >= RADIUS_M:
+                continue
+            row, col = int((half - y) // m), int((x + half) // m)
+            if 0 <= row < road.shape[0] and 0 <= col < road.shape[1]:
+                out.append(distance[row, col])
+    return np.array(out), m
+
+
+def percentiles(d: np.ndarray) -> dict:
+    pct = np.percentile(d, PERCENTILES).round(1).tolist() if len(d) else [None] * len(PERCENTILES)
+    return dict(zip(map(str, PERCENTILES), pct, strict=True))
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--cache", required=True)
-    parser.add_argument("--samples", required=True)
+    parser.add_argument("--samples", help="sampled scenes (JSONL); default: the cache's own")
+    parser.add_argument("--class", dest="cls", default=CLASS_NAMES[VEHICLE], choices=CLASS_NAMES)
     args = parser.parse_args()
-    counted, d, m = off_road_distances(args.cache, args.samples)
-    pct = np.percentile(d, PERCENTILES).round(1).tolist() if len(d) else [None] * 4
-    print(json.dumps({"vehicles": counted, "off_drivable": len(d),
-                      "on_drivable_share": round(1 - len(d) / max(counted, 1), 4),
-                      "distance_m_percentiles": dict(zip(map(str, PERCENTILES), pct, strict=True)),
+    cache = load_cache(args.cache)
+    scenes = (sampled_scenes(args.samples, args.cls) if args.samples
+              else real_scenes(cache, args.cls))
+    every, m = road_distances(cache, scenes)
+    d = every[every > 0]
+    print(json.dumps({"class": args.cls, "actors": len(every), "off_drivable": len(d),
+                      "on_drivable_share": round(1 - len(d) / max(len(every), 1), 4),
+                      "distance_m_percentiles": percentiles(d),
+                      "all_distance_m_percentiles": percentiles(every),
                       # a neighbouring pixel, diagonals included
                       "share_within_one_pixel": round(float(np.mean(d <= m * 2**0.5)), 4)
                       if len(d) else None}))

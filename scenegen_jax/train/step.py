@@ -162,7 +162,7 @@ def _apply_grads(state: TrainState, cfg: Config, unrolled, grads, devices, axis:
     grads, stats, loss = _psum_packed((grads, stats, loss / devices), axis)
     updates, opt_state = make_optimizer(cfg).update(grads, state.opt_state, state.params)
     params = optax.apply_updates(state.params, updates)
-    stats = {**stats, "loss": loss, "grad_norm": optax.global_norm(grads)}
+    stats = {**stats, "loss": loss, "grad_norm": optax.tree.norm(grads)}
     return TrainState(state.step + 1, params, opt_state, state.key), stats
 
 
