@@ -193,11 +193,11 @@ def run_case(args) -> dict:
     cfg = case_config(args)
     if args.step_loop:
         compiled = args.step_loop == "compiled"
-        backend.compiled_step_loop = lambda: compiled
+        backend.compiled_step_loop = lambda differentiated=True: compiled
     c_in = len(cfg.map_channels) + ACTOR_CHANNELS
     out = {"what": args.kind, "ours": True, "config": cfg.name, "grid": cfg.grid_size,
            "hidden": cfg.hidden, "batch": args.batch, "map_ch": len(cfg.map_channels)}
-    if args.kind != "sample" and backend.compiled_step_loop():
+    if args.kind != "sample" and backend.compiled_step_loop(args.kind == "train"):
         out.update(step_loop="compiled", step_loop_unroll=backend.STEP_LOOP_UNROLL)
     elif args.kind != "sample":
         out["step_loop"] = "unrolled"

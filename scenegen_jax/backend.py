@@ -85,13 +85,17 @@ def weight_gradient_bands() -> tuple[int, int] | None:
     return (32, 32) if train_eigen_convolutions() else (128, 64)
 
 
-def compiled_step_loop() -> bool:
+def compiled_step_loop(differentiated: bool = True) -> bool:
     """Whether a window's steps run as a compiled loop (`likelihood.unroll`): everywhere but
-    XLA:CPU. On an accelerator the unrolled window compiled for minutes. On XLA:CPU the
-    unrolled window's step runs faster: the `paper` step at grid 128, T 25 took 4.34 s
-    against 4.71 s as a loop of 4 steps an iteration, which compiled in 8.8 s instead of 35 s
-    (session 32, with `explicit_conv_gradients`; bench/README.md)."""
-    return not on_cpu()
+    in a differentiated unroll (the train step) on XLA:CPU. On an accelerator the unrolled
+    window compiled for minutes. On XLA:CPU the unrolled train step runs faster: the `paper`
+    step at grid 128, T 25 took 4.34 s against 4.71 s as a loop of 4 steps an iteration,
+    which compiled in 8.8 s instead of 35 s (session 32, with `explicit_conv_gradients`).
+    The scorer (no gradient) runs as fast or faster as a loop there and compiles in half the
+    time: `paper` at grid 128, T 25, B 1 1.15-1.17 against 1.21-1.25 s, first call 3.1
+    against 6.5-7.0 s; the shipped `cpu` model's first batch of 8 traced in 0.9 against 2.5 s
+    and compiled in 3.1 against 4.7 s (session 34; bench/README.md)."""
+    return not (on_cpu() and differentiated)
 
 
 def explicit_conv_gradients() -> bool:

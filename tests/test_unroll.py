@@ -68,7 +68,7 @@ def test_fast_unroll_equals_plain_reference(reference_case, chunk_bytes, step_lo
 
     if chunk_bytes is not None:
         monkeypatch.setattr(unroll, "HEAD_CHUNK_BYTES", chunk_bytes)
-    monkeypatch.setattr(backend, "compiled_step_loop", lambda: step_loop)
+    monkeypatch.setattr(backend, "compiled_step_loop", lambda differentiated=True: step_loop)
     cfg, params, maps, scene, ref, g_ref = reference_case
     fast, valid, _ = jax.jit(lambda p: unroll_terms(p, cfg, maps, scene, None))(params)
     steps = ref["class"].shape[1]
@@ -88,6 +88,21 @@ def test_fast_unroll_equals_plain_reference(reference_case, chunk_bytes, step_lo
         np.testing.assert_allclose(a, b, rtol=1e-2, atol=1e-4 * scale)
 
 
+def test_only_a_differentiated_unroll_is_unrolled_on_cpu(reference_case):
+    """On XLA:CPU the scorer's steps (no gradient) run as a compiled loop, a program of a few
+    steps, and the train step's unrolled, every step traced (`backend.compiled_step_loop`);
+    on accelerators both loop."""
+    from scenegen_jax import backend
+
+    cfg, params, maps, scene, _, _ = reference_case
+
+    def lines(differentiated):  # of the lowered program: 16 steps against a loop body of 4
+        return jax.jit(lambda p: unroll_terms(p, cfg, maps, scene, None, differentiated)).lower(
+            params).as_text().count("\n")
+
+    assert (lines(False) < 0.8 * lines(True)) == backend.on_cpu()
+
+
 @pytest.mark.parametrize("step_loop", [False, True])
 def test_remat_gives_the_same_loss_and_gradients(tiny_train_cache, small_scenes, step_loop,
                                                  monkeypatch):
@@ -98,7 +113,7 @@ def test_remat_gives_the_same_loss_and_gradients(tiny_train_cache, small_scenes,
     import scenegen_jax.likelihood.unroll as unroll
 
     monkeypatch.setattr(unroll, "HEAD_CHUNK_BYTES", 3 * 2 * 32 * 32 * 8 * 4)
-    monkeypatch.setattr(backend, "compiled_step_loop", lambda: step_loop)
+    monkeypatch.setattr(backend, "compiled_step_loop", lambda differentiated=True: step_loop)
     monkeypatch.setattr(backend, "STEP_LOOP_UNROLL", 1)  # the same loop, a smaller body
     maps, scene = _crop(tiny_train_cache, small_scenes, [0.0, 1.0], CFG)
     params = random_params(CFG, jax.random.key(2))
@@ -148,7 +163,7 @@ def test_window_by_window_gradient_equals_autodiff(autodiff_case, remat, compile
     assert num_windows(cfg) == 4
     maps, scene, params, ((loss, stats), grads) = autodiff_case
     monkeypatch.setattr(backend, "compiled_window_loop", lambda: compiled_loop)
-    monkeypatch.setattr(backend, "compiled_step_loop", lambda: compiled_loop)
+    monkeypatch.setattr(backend, "compiled_step_loop", lambda differentiated=True: compiled_loop)
     unrolled, windowed = jax.jit(
         lambda p: unroll_terms_and_grads(p, cfg, maps, scene, 1.0 / 2))(params)
     scene_nll, stats_w = nll_metrics(*unrolled)

@@ -29,7 +29,8 @@ from scenegen_jax.scene import CLASS_NAMES, STOP
 def score_batch(params, batch: Batch, cfg: Config) -> dict:
     """Per-step NLL terms of a batch: dict term -> [B, T] (nats), plus step class and mask."""
     maps, scene = crop_batch(batch, jnp.zeros(batch.actors.cls.shape[0]), cfg)
-    terms, step_valid, step_cls = unroll_terms(params, cfg, maps, scene, None)
+    terms, step_valid, step_cls = unroll_terms(params, cfg, maps, scene, None,
+                                               differentiated=False)
     out = {k: -v for k, v in terms.items()}
     out["step_valid"] = step_valid
     out["step_cls"] = step_cls

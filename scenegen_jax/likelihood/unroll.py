@@ -4,17 +4,18 @@ Step t of a scene with n actors predicts actor t (t < n) or the stop token (t = 
 t > n are padding. Steps run in windows of `cfg.bptt_window`: the ConvLSTM state is carried
 from window to window with its gradient cut (truncated backprop through time).
 
-On XLA:CPU steps are unrolled at trace time (Python loops): it runs convolution gradients
-inside while loops and conditionals 10-20x slower than at the top level (jax-ml/jax#12868).
-On accelerators a window's steps run as a `lax.scan` (`backend.compiled_step_loop`): a few steps are
+On XLA:CPU the steps of a window that is differentiated (the train step) are unrolled at
+trace time (Python loops): it runs convolution gradients inside while loops and conditionals
+10-20x slower than at the top level (jax-ml/jax#12868). The scorer's steps there, and every
+window's on accelerators, run as a `lax.scan` (`backend.compiled_step_loop`): a few steps are
 compiled instead of a window's worth. Windows run through `scan_windows`: a Python loop on
 CPU, a `lax.scan` (one window compiled) on accelerators. The train step takes each window's
 gradient right after that window (`unroll_terms_and_grads`), so it holds one window's
 activations. Every window always runs, so `cfg.max_actors` should fit the data (overflow is
 counted).
 
-Inside a window (the fast path; measurements in bench/README.md; on CPU `_unrolled_steps`,
-elsewhere `_scanned_steps`, the same mathematics as a loop over the steps):
+Inside a window (the fast path; measurements in bench/README.md; `_unrolled_steps` in the CPU
+train step, elsewhere `_scanned_steps`, the same mathematics as a loop over the steps):
   * the map share of layer 1's input convolution is computed once per scene (`map_gates`),
     so its weight gradient is one convolution over the gradients summed over steps;
   * per step: the actor share of layer 1's input gates, updated by a convolution over the
@@ -208,13 +209,14 @@ def _scenes(params, cfg: Config, maps, scene: Scene) -> _Scenes:
 
 
 def window_terms(params, map_gates, carry, start, scenes: _Scenes, cfg: Config,
-                 hard_negatives: int | None):
+                 hard_negatives: int | None, differentiated: bool = True):
     """One window: the `cfg.bptt_window` steps from step `start` (may be traced), given the
     carried (ConvLSTM state, actor raster); returns (carry, terms name -> [B, W], zero at
     padding steps). The carry is an input like any other: callers cut its gradient. At a
     static start 0 (a scene's first window) the state is the zero state: its first step skips
     the recurrent convolutions of those zeros (`SceneGenNet.recur`). The steps run unrolled
-    on XLA:CPU and as a compiled loop elsewhere (`backend.compiled_step_loop`)."""
+    where the window is `differentiated` on XLA:CPU and as a compiled loop elsewhere
+    (`backend.compiled_step_loop`)."""
     net = SceneGenNet(cfg)
     state, raster = carry
     if isinstance(start, int) and start == 0:
@@ -226,7 +228,7 @@ def window_terms(params, map_gates, carry, start, scenes: _Scenes, cfg: Config,
     targets, is_stop, valid = _step_targets(win, scenes.n_actors, scenes.complete,
                                            start + jnp.arange(w))
     bins = bin_index(targets.position, cfg)  # [B, W]
-    steps = _scanned_steps if backend.compiled_step_loop() else _unrolled_steps
+    steps = _scanned_steps if backend.compiled_step_loop(differentiated) else _unrolled_steps
     heads, state, raster_end = steps(
         net, params, map_gates, state, raster, win, targets.cls, bins, prev_bins, cfg
     )
@@ -356,7 +358,8 @@ def _join_windows(terms: dict, scenes: _Scenes):
     return terms, step_valid, jnp.where(is_stop, STOP, scenes.actors.cls)
 
 
-def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | None):
+def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | None,
+                 differentiated: bool = True):
     """Log-likelihood terms of every step of a batch of scenes, teacher forced.
 
     Args:
@@ -365,6 +368,8 @@ def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | 
       maps: [B, H, W, Cm] map channels.
       scene: batched Scene (actors [B, N] canonical, ego [B]).
       hard_negatives: location normaliser size for training, None for the full softmax.
+      differentiated: whether the caller takes a gradient through it (the steps' loop form
+        depends on it: `backend.compiled_step_loop`); the values do not.
     Returns:
       (terms: dict name -> [B, T] log-likelihoods, zero at padding steps; step_valid [B, T];
       step_cls [B, T] with STOP at the stop step), T = windows * cfg.bptt_window.
@@ -375,7 +380,7 @@ def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | 
     def window(carry, index):
         carry = jax.lax.stop_gradient(carry)  # truncated BPTT: no gradient across windows
         return window_terms(params, map_gates, carry, index * cfg.bptt_window, scenes, cfg,
-                            hard_negatives)
+                            hard_negatives, differentiated)
 
     _, terms = scan_windows(window, (scenes.state0, scenes.raster0), num_windows(cfg))
     return _join_windows(terms, scenes)
