@@ -98,12 +98,12 @@ class VectorMap:
         lanes = tuple(
             dataclasses.replace(lane, left=f(lane.left), right=f(lane.right)) for lane in self.lanes
         )
-        return VectorMap(
+        return dataclasses.replace(  # the fields without points (`dataset`) as they are
+            self,
             lanes=lanes,
             crosswalks=tuple(f(p) for p in self.crosswalks),
             drivable_areas=tuple(f(p) for p in self.drivable_areas),
             lines=tuple(dataclasses.replace(line, points=f(line.points)) for line in self.lines),
-            dataset=self.dataset,
         )
 
     @functools.cached_property
@@ -133,9 +133,7 @@ class VectorMap:
             items = getattr(self, kind)
             return tuple(items[i] for i in np.flatnonzero(near))
 
-        return VectorMap(lanes=keep("lanes"), crosswalks=keep("crosswalks"),
-                         drivable_areas=keep("drivable_areas"), lines=keep("lines"),
-                         dataset=self.dataset)
+        return dataclasses.replace(self, **{kind: keep(kind) for kind in self._boxes})
 
 
 def resample_polyline(points: np.ndarray, n: int) -> np.ndarray:
