@@ -50,7 +50,8 @@ def subset(cache, idx):
 
 def drivable_masks(cache, cfg) -> np.ndarray:
     """[S, H*W] bool: the drivable-area bins of each scene (unrotated crop)."""
-    full = cfg.replace(map_layers=("lanes", "drivable", "crosswalks"))
+    full = cfg.replace(map_layers=("drivable",), train_layers=(), heading_lane_frame=False,
+                       attribute_map_input=False, attribute_map_skip=False)
     channel = full.map_channels.index("drivable_area")
     return np.stack([
         np.asarray(crop_map(jnp.asarray(cache.maps[i]), 0.0, full))[..., channel].reshape(-1) > 0.5
