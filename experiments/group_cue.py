@@ -4,7 +4,8 @@ earlier actor of their class (a group of pedestrians, a row of bicycles) against
 Both models scored on the same cache (`scenegen score --data CACHE --actors-out F.npz`); the
 actors of `--class` are split by whether an actor of the same class placed earlier in the
 canonical order stands within `--radius` m, and the location NLL per actor, A minus B, is
-paired on each part with `scenegen compare`'s block bootstrap:
+paired on each part with `scenegen compare`'s block bootstrap (`diff`, `low`, `high`), beside
+each model's own location NLL per actor of the part (`a_nll`, `b_nll`):
 
     .venv/bin/python experiments/group_cue.py --cache runs/cache_cpu_womdjson_val \
         --a runs/scores/phase12_womd.npz --b runs/scores/nomap12_womd.npz --class pedestrian
@@ -22,7 +23,7 @@ import jax
 import numpy as np
 
 from scenegen_jax.data.cache import cached_scene, load_cache
-from scenegen_jax.eval.compare import load_scores, paired_difference
+from scenegen_jax.eval.compare import actor_sums, load_scores, paired_difference
 from scenegen_jax.eval.nll import actor_steps
 from scenegen_jax.raster.transform import scene_from_cached
 from scenegen_jax.scene import CLASS_NAMES
@@ -72,11 +73,13 @@ def main():
     cls = CLASS_NAMES.index(args.cls)
     grouped = grouped_steps(cache, cfg, a, cls, args.radius)
     of_class = actor_steps(a) & (a["step_cls"] == cls)
-    rows = {
-        name: paired_difference([restricted(a, mask)], [restricted(b, mask)], "location", cls)
-        for name, mask in (("grouped", grouped), ("alone", of_class & ~grouped),
-                           ("all", of_class))
-    }
+    rows = {}
+    for name, mask in (("grouped", grouped), ("alone", of_class & ~grouped), ("all", of_class)):
+        a_part, b_part = restricted(a, mask), restricted(b, mask)
+        rows[name] = paired_difference([a_part], [b_part], "location", cls)
+        for key, part in (("a_nll", a_part), ("b_nll", b_part)):
+            total, count = actor_sums(part, "location", cls)
+            rows[name][key] = float(total.sum() / max(count.sum(), 1))
     print(json.dumps({"cache": args.cache, "a": args.a, "b": args.b, "class": args.cls,
                       "radius_m": args.radius, "rows": rows}, indent=1))
 

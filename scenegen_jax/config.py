@@ -45,7 +45,7 @@ PAPER_LAYER_GROUPS: tuple[str, ...] = ("lanes", "drivable", "crosswalks")
 # Fields that only training reads (the scorer and the sampler see `Config.inference()`).
 TRAINING_ONLY = ("name", "hard_negatives", "batch_size", "learning_rate", "warmup_steps",
                  "decay_steps", "grad_clip", "rotate_augment", "map_dropout", "remat",
-                 "train_layers", "seed")
+                 "train_layers", "train_params", "seed")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -96,8 +96,11 @@ class Config:
       train_layers: map layer groups (of `map_layers`) whose weights alone train (beyond the
         paper; fine-tuning): every other parameter, and the weights of every other map
         channel, keep the values the run starts from. For a model extended with a layer group
-        by `--init-from` (its new weights start at zero), e.g. the `dataset` layers. Empty
-        (the default): every parameter trains.
+        by `--init-from` (its new weights start at zero), e.g. the `dataset` layers. Empty,
+        with `train_params` empty too (the default): every parameter trains.
+      train_params: parameters (top-level names of the parameter tree, e.g. `lstm1_order`)
+        that train in full beside `train_layers` (beyond the paper; fine-tuning); every
+        other parameter keeps its starting values.
       remat: recompute the backbone and heads in the train step's backward pass instead of
         storing their activations (same values and gradients; less memory, more compute).
       coord_channels: two more input channels, each pixel's row and column in [-1, 1]
@@ -167,6 +170,7 @@ class Config:
     map_dropout: float = 0.0
     remat: bool = False
     train_layers: tuple[str, ...] = ()
+    train_params: tuple[str, ...] = ()
     coord_channels: bool = False
     orientation_bins: int = 0
     order_channel: bool = False
@@ -266,6 +270,8 @@ def config_problems(cfg: Config) -> list[str]:
     unknown = sorted(set(named) - set(LAYER_GROUPS))
     if unknown:
         out.append(f"map_layers: unknown groups {unknown}; known: {list(ALL_LAYER_GROUPS)}")
+    if not all(isinstance(n, str) and n for n in cfg.train_params):
+        out.append(f"train_params: must be parameter names, got {cfg.train_params!r}")
     absent = [g for g in cfg.train_layers if g not in cfg.map_layers]
     if absent:
         out.append(f"train_layers: {absent} not in map_layers {list(cfg.map_layers)}")

@@ -335,6 +335,29 @@ def test_train_layers_trains_only_the_weights_of_those_map_channels(tiny_train_c
         cfg.replace(train_layers=("nearest_lane",))
 
 
+def test_train_params_trains_only_those_parameters():
+    """Adam's update is zero on every parameter but the named ones, which move in full."""
+    cfg = CFG.replace(train_params=("loc2_w", "class_mlp2"), learning_rate=1e-2)
+    params = init_state(cfg).params
+    opt = make_optimizer(cfg)
+    grads = jax.tree.map(jnp.ones_like, params)
+    updates, _ = opt.update(grads, opt.init(params), params)
+    moved = sorted(
+        jax.tree_util.keystr(path)
+        for path, u in jax.tree_util.tree_flatten_with_path(updates)[0]
+        if np.any(np.asarray(u) != 0)
+    )
+    assert moved == ["['class_mlp2']['bias']", "['class_mlp2']['kernel']", "['loc2_w']"]
+    for path, u in jax.tree_util.tree_flatten_with_path(updates)[0]:
+        if "loc2_w" in jax.tree_util.keystr(path):
+            assert np.all(np.asarray(u) != 0)  # every entry of a named parameter trains
+    with pytest.raises(ValueError, match=r"train_params: no parameter \['lstm9'\]"):
+        make_optimizer(cfg.replace(train_params=("lstm9",))).update(
+            grads, opt.init(params), params)
+    with pytest.raises(ValueError, match="train_params"):
+        CFG.replace(train_params=("",))
+
+
 def test_warm_start_extends_a_model_without_map_layers(tiny_train_cache, small_scenes):
     from scenegen_jax.train.loop import warm_start
 

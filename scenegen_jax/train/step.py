@@ -55,22 +55,28 @@ class TrainState(NamedTuple):
 
 def make_optimizer(cfg: Config) -> optax.GradientTransformation:
     """Adam with global-norm clipping and the learning-rate schedule `learning_rate_at`; with
-    `train_layers`, the gradients first masked to those layers' weights
-    (`train_layers_mask`)."""
+    `train_layers` or `train_params`, the gradients first masked to those weights
+    (`trainable_mask`)."""
     adam = optax.adam(learning_rate_at(cfg))
     if cfg.grad_clip > 0:
         adam = optax.chain(optax.clip_by_global_norm(cfg.grad_clip), adam)
-    if cfg.train_layers:
-        return optax.chain(_masked(functools.partial(train_layers_mask, cfg)), adam)
+    if cfg.train_layers or cfg.train_params:
+        return optax.chain(_masked(functools.partial(trainable_mask, cfg)), adam)
     return adam
 
 
-def train_layers_mask(cfg: Config, params):
-    """1 on the weights that read the map channels of `cfg.train_layers` (`MAP_CHANNEL_AXIS`),
-    0 on every other entry of every parameter: numpy arrays shaped as `params`."""
+def trainable_mask(cfg: Config, params):
+    """1 on the weights that read the map channels of `cfg.train_layers` (`MAP_CHANNEL_AXIS`)
+    and on every entry of the parameters `cfg.train_params`, 0 elsewhere: numpy arrays shaped
+    as `params`. An unknown parameter name is a ValueError that lists the known ones."""
+    unknown = sorted(set(cfg.train_params) - set(params))
+    if unknown:
+        raise ValueError(f"train_params: no parameter {unknown}; parameters: {sorted(params)}")
     channels = [cfg.map_channels.index(c) for g in cfg.train_layers for c in LAYER_GROUPS[g]]
 
     def mask(path, x):
+        if path[0].key in cfg.train_params:
+            return np.ones(x.shape, np.float32)
         m = np.zeros(x.shape, np.float32)
         axis = MAP_CHANNEL_AXIS.get(path[0].key)
         if axis is not None:
