@@ -6,7 +6,9 @@
 # at batch 8, and the same recipe with the `dataset` planes as its only layers. Each process
 # gets 40 % of the GPU's memory; on the lent H200 the pair ran at 5.5-6.7 steps/s each.
 #
-# Session 36 ran it in two calls on the workplace's lent H200 (jax 0.11.2 there):
+# Session 36 ran the same two `scenegen train` commands in two calls on the workplace's lent
+# H200 (jax 0.11.2 there), from a wrapper that also timed a 100-step probe first; as this
+# script:
 #   experiments/gpu_run.sh 1960 1e-3 21                   # from scratch, 6.4 min
 #   experiments/gpu_run.sh 900 3e-4 22 runs/gpu/map runs/gpu/nomap    # fine-tune, 3.7 min
 # (1960 steps was what a 100-step probe said would fit the lease's minutes; the second call
