@@ -271,8 +271,8 @@ def test_train_on_two_caches(caches, tmp_path):
 
 @pytest.mark.slow
 def test_four_shards_train_to_the_parameters_of_one_cache(womd_root, tmp_path):
-    """`prepare --shard I/4` x 4 (womd_mini GPUDrive JSON val, 14 files) reads as the
-    unsharded cache and trains to the same parameters, bit for bit."""
+    """`prepare --shard I/4` x 4 (womd_mini GPUDrive JSON val, 14 files, 3 frames of each)
+    reads as the unsharded cache and trains to the same parameters, bit for bit."""
     import subprocess
 
     from small import train_cmd
@@ -283,7 +283,7 @@ def test_four_shards_train_to_the_parameters_of_one_cache(womd_root, tmp_path):
     from scenegen_jax.data.sources import source_spec
     from scenegen_jax.train.loop import load_trained
 
-    spec = source_spec("womd_json", os.path.join(womd_root, "gpudrive_json"), "val", 10)
+    spec = source_spec("womd_json", os.path.join(womd_root, "gpudrive_json"), "val", 45)
     whole, sharded = str(tmp_path / "whole"), str(tmp_path / "sharded")
     prepare(spec, whole, get_config("tiny"), workers=1)
     for i in range(4):

@@ -204,14 +204,15 @@ def test_overfit_two_real_scenes(tiny_train_cache, small_scenes):
 
 def test_split_train_step_equals_the_one_program_step(tiny_train_cache, small_scenes):
     """The train step as programs called chunk by chunk, each window's chunks' backward passes
-    chained through the carry (`SplitTrainStep`; two chunks of 4 steps a window here), against
-    the one-program step over two steps: the same loss, statistics and gradient norm (a
-    gradient missing a part, e.g. the map convolution's or a chunk's carry, changes it), and
-    the same parameters wherever the gradient is not ~0 (Adam's first steps move a parameter
-    by about the learning rate whatever its gradient's size)."""
+    chained through the carry (`SplitTrainStep`; windows of 8 steps here, two chunks of 4 steps
+    each, then the last 2 steps), against the one-program step over two steps: the same loss,
+    statistics and gradient norm (a gradient missing a part, e.g. the map convolution's or a
+    chunk's carry, changes it), and the same parameters wherever the gradient is not ~0
+    (Adam's first steps move a parameter by about the learning rate whatever its gradient's
+    size)."""
     from scenegen_jax.train.step import SplitTrainStep
 
-    cfg = CFG.replace(rotate_augment=True)
+    cfg = CFG.replace(rotate_augment=True, bptt_window=8)
     batch = jax.device_put(_batch(tiny_train_cache, small_scenes))
     split, fused = SplitTrainStep(cfg, init_state(cfg), batch), make_train_step(cfg)
     a, b = init_state(cfg), init_state(cfg)  # each step donates its state
@@ -296,12 +297,14 @@ def test_empty_scene_is_one_stop_step(tiny_train_cache, small_scenes):
 
 
 def test_map_dropout_trains_as_on_a_blank_map(tiny_train_cache, small_scenes):
+    # Jitted: three steps run op by op took longer than compiling the two configs' steps.
+    step = jax.jit(train_step, static_argnums=2)
     batch = jax.device_put(_batch(tiny_train_cache, small_scenes))
     blank = batch._replace(canvas=jnp.zeros_like(batch.canvas))
     state = init_state(CFG)
-    _, dropped = train_step(state, batch, CFG.replace(map_dropout=1.0))
-    _, no_map = train_step(state, blank, CFG)
-    _, with_map = train_step(state, batch, CFG)
+    _, dropped = step(state, batch, CFG.replace(map_dropout=1.0))
+    _, no_map = step(state, blank, CFG)
+    _, with_map = step(state, batch, CFG)
     np.testing.assert_allclose(dropped["loss"], no_map["loss"], rtol=1e-6)
     assert abs(float(dropped["loss"]) - float(with_map["loss"])) > 1e-3
     with pytest.raises(ValueError, match="map_dropout"):

@@ -107,7 +107,7 @@ def test_only_a_differentiated_unroll_is_unrolled_on_cpu(reference_case):
 def test_remat_gives_the_same_loss_and_gradients(tiny_train_cache, small_scenes, step_loop,
                                                  monkeypatch):
     """Recomputing the backbone and heads in the backward pass (chunks of 3 steps unrolled,
-    or one step per iteration of the compiled loop; windows of 8 with the state carried
+    or one step per iteration of the compiled loop; two windows of 5 with the state carried
     between them) changes neither the loss nor its gradients."""
     import scenegen_jax.backend as backend
     import scenegen_jax.likelihood.unroll as unroll
@@ -119,7 +119,7 @@ def test_remat_gives_the_same_loss_and_gradients(tiny_train_cache, small_scenes,
     params = random_params(CFG, jax.random.key(2))
 
     def loss(p, remat):
-        cfg = CFG.replace(bptt_window=8, remat=remat)
+        cfg = CFG.replace(bptt_window=5, remat=remat)
         t, _, _ = unroll_terms(p, cfg, maps, scene, 64)
         return -sum(jnp.sum(v) for v in t.values())
 
@@ -183,14 +183,15 @@ def test_window_by_window_gradient_equals_autodiff(autodiff_case, remat, compile
 
 
 def test_truncation_cuts_gradients_between_windows(tiny_train_cache, small_scenes):
-    params = random_params(CFG, jax.random.key(2))
-    maps, scene = _crop(tiny_train_cache, small_scenes, [0.0, 0.0], CFG)
+    cfg = CFG.replace(bptt_window=5)  # two windows of the 10 steps
+    params = random_params(cfg, jax.random.key(2))
+    maps, scene = _crop(tiny_train_cache, small_scenes, [0.0, 0.0], cfg)
 
     def window_loss(p, lo, hi):
-        t, _, _ = unroll_terms(p, CFG, maps, scene, None)
+        t, _, _ = unroll_terms(p, cfg, maps, scene, None)
         return -jnp.sum(t["class"][:, lo:hi])
 
-    w = CFG.bptt_window
+    w = cfg.bptt_window
     # The second window's loss depends on the first window's inputs only through the state,
     # whose gradient is cut: its gradient w.r.t. the recurrent weights comes from window 2 only.
     grad = jax.jit(jax.grad(window_loss), static_argnums=(1, 2))
@@ -199,7 +200,7 @@ def test_truncation_cuts_gradients_between_windows(tiny_train_cache, small_scene
     assert np.all(np.isfinite(np.asarray(g2["lstm1_rec"])))
     assert not np.allclose(g1["lstm1_rec"], g2["lstm1_rec"])
     # Every step of both windows contributes: the second window's terms are non-zero.
-    t, valid, _ = jax.jit(lambda p: unroll_terms(p, CFG, maps, scene, None))(params)
+    t, valid, _ = jax.jit(lambda p: unroll_terms(p, cfg, maps, scene, None))(params)
     assert np.all(np.asarray(t["class"])[np.asarray(valid)] != 0)
 
 
