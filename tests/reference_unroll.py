@@ -15,12 +15,12 @@ from scenegen_jax.raster.actors import draw_actor
 from scenegen_jax.scene import STOP, Scene, bin_index
 
 
-def _reference_steps(params, cfg: Config, maps, scene: Scene, steps: int):
-    """The obvious per-step loop: each step a full ConvLSTM step on the concatenated input
-    (map ++ actors ++ h1 ++ the canonical order's channel), teacher forced with the scene's
-    actors. Yields (t, backbone features [B, H, W, h], the actors padded to `steps` slots)."""
-    net = SceneGenNet(cfg)
-    apply = _bound(net, params)
+@functools.partial(jax.jit, static_argnums=1)
+def _reference_cell(params, cfg: Config, maps, raster, state, prev):
+    """One ConvLSTM step on the concatenated input (map ++ actors ++ h1 ++ the canonical
+    order's channel: 1 on the bins at or after `prev` [B], the previous actor's bin):
+    (state, backbone features [B, H, W, h]). Jitted so that the loop below compiles one step,
+    not thousands of operations one by one (the same operations either way)."""
     b = maps.shape[0]
     w_in = jnp.concatenate(
         ([params["lstm1_map"]] if cfg.map_channels else [])
@@ -28,31 +28,52 @@ def _reference_steps(params, cfg: Config, maps, scene: Scene, steps: int):
         + ([params["lstm1_order"]] if cfg.order_channel else []),
         axis=2,
     )
-    actors = _pad_slots(scene.actors, max(steps, scene.actors.cls.shape[1]))
-    raster = jax.vmap(functools.partial(draw_actor, cfg=cfg))(
-        jnp.zeros((b, cfg.grid_size, cfg.grid_size, 9)), scene.ego, jnp.ones((b,), bool)
+    (h1, c1), (h2, c2) = state
+    allowed = jnp.arange(cfg.grid_size**2)[None] >= prev[:, None]
+    order = allowed.reshape(b, cfg.grid_size, cfg.grid_size, 1).astype(maps.dtype)
+    x = jnp.concatenate([maps, raster, h1] + ([order] if cfg.order_channel else []), axis=-1)
+    h1, c1 = lstm_gates(conv(x, w_in, params["lstm1_b"]), c1)
+    h2, c2 = lstm_gates(
+        conv(jnp.concatenate([h1, h2], -1), params["lstm2_w"], params["lstm2_b"]), c2
     )
-    state = apply(SceneGenNet.initial_state, b)
+    features = _bound(SceneGenNet(cfg), params)(SceneGenNet.features, h2)
+    return ((h1, c1), (h2, c2)), features
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _draw(cfg: Config, raster, actor, is_ego):
+    return jax.vmap(functools.partial(draw_actor, cfg=cfg))(raster, actor, is_ego)
+
+
+def _reference_steps(params, cfg: Config, maps, scene: Scene, steps: int):
+    """The obvious per-step loop: each step a full ConvLSTM step (`_reference_cell`), teacher
+    forced with the scene's actors. Yields (t, backbone features [B, H, W, h], the actors
+    padded to `steps` slots)."""
+    b = maps.shape[0]
+    actors = _pad_slots(scene.actors, max(steps, scene.actors.cls.shape[1]))
+    raster = _draw(cfg, jnp.zeros((b, cfg.grid_size, cfg.grid_size, 9)), scene.ego,
+                   jnp.ones((b,), bool))
+    state = _bound(SceneGenNet(cfg), params)(SceneGenNet.initial_state, b)
     for t in range(steps):
-        (h1, c1), (h2, c2) = state
-        # The order channel: 1 on the bins at or after the previous actor's (all at t = 0).
+        # The previous actor's bin (0 at t = 0: every bin allowed).
         prev = bin_index(actors.position[:, t - 1], cfg) if t else jnp.zeros((b,), jnp.int32)
-        allowed = jnp.arange(cfg.grid_size**2)[None] >= prev[:, None]
-        order = allowed.reshape(b, cfg.grid_size, cfg.grid_size, 1).astype(maps.dtype)
-        x = jnp.concatenate([maps, raster, h1] + ([order] if cfg.order_channel else []), axis=-1)
-        h1, c1 = lstm_gates(conv(x, w_in, params["lstm1_b"]), c1)
-        h2, c2 = lstm_gates(
-            conv(jnp.concatenate([h1, h2], -1), params["lstm2_w"], params["lstm2_b"]), c2
-        )
-        state = ((h1, c1), (h2, c2))
-        yield t, apply(SceneGenNet.features, h2), actors
+        state, features = _reference_cell(params, cfg, maps, raster, state, prev)
+        yield t, features, actors
         a = jax.tree.map(lambda x, t=t: x[:, t], actors)
-        raster = jax.vmap(functools.partial(draw_actor, cfg=cfg))(raster, a, jnp.zeros((b,), bool))
+        raster = _draw(cfg, raster, a, jnp.zeros((b,), bool))
+
+
+@functools.partial(jax.jit, static_argnums=(1, 6))
+def _reference_terms(params, cfg: Config, f, target, is_stop, map_feat, hard_negatives):
+    """The terms of one step's target actor given the backbone features `f` (jitted, as
+    `_reference_cell`)."""
+    net = SceneGenNet(cfg)
+    heads = step_heads(net, params, f, target.cls, bin_index(target.position, cfg))
+    return head_terms(net, params, heads, target, is_stop, cfg, hard_negatives, map_feat)
 
 
 def reference_step_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | None):
     """The teacher-forced terms of every step, step by step (`_reference_steps`)."""
-    net = SceneGenNet(cfg)
     n_actors = jnp.sum(scene.actors.valid, axis=1)
     complete = jnp.broadcast_to(jnp.asarray(scene.complete), n_actors.shape)
     out = {k: [] for k in TERMS}
@@ -61,9 +82,8 @@ def reference_step_terms(params, cfg: Config, maps, scene: Scene, hard_negatives
         is_stop = (n_actors == t) & complete  # a truncated scene has no stop token
         target = a.replace(cls=jnp.where(is_stop, STOP, a.cls))
         bins = bin_index(target.position, cfg)
-        heads = step_heads(net, params, f, target.cls, bins)
         map_feat = maps.reshape(maps.shape[0], -1, maps.shape[-1])[jnp.arange(maps.shape[0]), bins]
-        terms = head_terms(net, params, heads, target, is_stop, cfg, hard_negatives, map_feat)
+        terms = _reference_terms(params, cfg, f, target, is_stop, map_feat, hard_negatives)
         for k in TERMS:
             out[k].append(terms[k] * ((t < n_actors) | is_stop))
     return {k: jnp.stack(v, axis=1) for k, v in out.items()}

@@ -47,6 +47,11 @@ def _batch(cache, idx):
     return gather_batch(cache, np.asarray(idx), CFG)
 
 
+# `train_step` compiled once per config. Run op by op, the module's first step took 25-50 s
+# (thousands of small programs compiled), more than compiling the whole step (session 37).
+_jitted_train_step = jax.jit(train_step, static_argnums=2)
+
+
 def test_location_head_single_example_path_agrees(tiny_train_cache):
     cfg = CFG
     params = random_params(cfg, jax.random.key(4))
@@ -297,8 +302,7 @@ def test_empty_scene_is_one_stop_step(tiny_train_cache, small_scenes):
 
 
 def test_map_dropout_trains_as_on_a_blank_map(tiny_train_cache, small_scenes):
-    # Jitted: three steps run op by op took longer than compiling the two configs' steps.
-    step = jax.jit(train_step, static_argnums=2)
+    step = _jitted_train_step
     batch = jax.device_put(_batch(tiny_train_cache, small_scenes))
     blank = batch._replace(canvas=jnp.zeros_like(batch.canvas))
     state = init_state(CFG)
@@ -318,7 +322,7 @@ def test_train_layers_trains_only_the_weights_of_those_map_channels(tiny_train_c
     batch = jax.device_put(_batch(tiny_train_cache, small_scenes))
     state = init_state(cfg)
     start = flatten_dict(jax.tree.map(np.array, state.params), sep="/")
-    new, _ = train_step(state, batch, cfg)
+    new, _ = _jitted_train_step(state, batch, cfg)
     end = flatten_dict(new.params, sep="/")
     drivable = cfg.map_channels.index("drivable_area")
     changed = []
@@ -375,8 +379,8 @@ def test_warm_start_extends_a_model_without_map_layers(tiny_train_cache, small_s
     # So the extended model starts as the source model: the same loss on real scenes.
     batch = jax.device_put(_batch(tiny_train_cache, small_scenes))
     state = init_state(CFG)._replace(params=params, opt_state=make_optimizer(CFG).init(params))
-    _, extended = train_step(state, batch, CFG)
-    _, original = train_step(source, batch, no_map)
+    _, extended = _jitted_train_step(state, batch, CFG)
+    _, original = _jitted_train_step(source, batch, no_map)
     np.testing.assert_allclose(extended["loss"], original["loss"], rtol=1e-6)
 
     with pytest.raises(ValueError, match=r"src: parameter .* has shape"):
