@@ -302,13 +302,12 @@ def test_empty_scene_is_one_stop_step(tiny_train_cache, small_scenes):
 
 
 def test_map_dropout_trains_as_on_a_blank_map(tiny_train_cache, small_scenes):
-    step = _jitted_train_step
     batch = jax.device_put(_batch(tiny_train_cache, small_scenes))
     blank = batch._replace(canvas=jnp.zeros_like(batch.canvas))
     state = init_state(CFG)
-    _, dropped = step(state, batch, CFG.replace(map_dropout=1.0))
-    _, no_map = step(state, blank, CFG)
-    _, with_map = step(state, batch, CFG)
+    _, dropped = _jitted_train_step(state, batch, CFG.replace(map_dropout=1.0))
+    _, no_map = _jitted_train_step(state, blank, CFG)
+    _, with_map = _jitted_train_step(state, batch, CFG)
     np.testing.assert_allclose(dropped["loss"], no_map["loss"], rtol=1e-6)
     assert abs(float(dropped["loss"]) - float(with_map["loss"])) > 1e-3
     with pytest.raises(ValueError, match="map_dropout"):
