@@ -41,11 +41,14 @@ def pytest_configure(config):
     config._scenegen_compile_cache = path
 
 
-# The modules that take longest, slowest first (session 37, `make test`'s --durations on two
-# workers: 290, 280, 130, 90, 75 s of the suite's 1,240): each xdist worker takes whole
-# modules in this order, then the rest in file order, so the short ones even out the end.
-SLOWEST_MODULES = ("test_unroll.py", "test_train.py", "test_distributed.py",
-                   "test_sampling.py", "test_checkpoint.py")
+# The modules that take longest, slowest first (session 37, `--durations=0` on two workers:
+# 209, 190, 115, 98, then 53 down to 29 s of the suite's 990; the rest take 13 s or less):
+# each xdist worker takes the next whole module when it is nearly done with its last, in
+# this order, then the rest in file order, so that the short ones even out the end.
+SLOWEST_MODULES = ("test_train.py", "test_unroll.py", "test_distributed.py", "test_sampling.py",
+                   "test_womd_json.py", "test_scoring.py", "test_checkpoint.py",
+                   "test_multi_cache.py", "test_av2.py", "test_keys.py", "test_fuzz.py",
+                   "test_distributions.py")
 
 
 def pytest_collection_modifyitems(config, items):
