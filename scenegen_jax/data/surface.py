@@ -111,9 +111,9 @@ def _side_distances(centers: Sequence[np.ndarray], max_m: float, segs: np.ndarra
         return []
     points = np.concatenate(centers)
     n = np.concatenate([normals(c) for c in centers])
-    both = np.stack(
-        [ray_distances(points, n, max_m, segs), ray_distances(points, -n, max_m, segs)], axis=1
-    )
+    # Both sides' rays in one call: one tree of the segments.
+    both = ray_distances(np.concatenate([points, points]), np.concatenate([n, -n]), max_m, segs)
+    both = both.reshape(2, len(points)).T
     return np.split(both, np.cumsum([len(c) for c in centers])[:-1])
 
 
