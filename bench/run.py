@@ -331,7 +331,7 @@ def _run(cmd: list[str], is_ours: bool, timeout: float = 1800) -> list[dict]:
         tail = (p.stderr or p.stdout)[-2000:]
         return [{"what": "error", "cmd": cmd, "returncode": p.returncode, "stderr_tail": tail}]
     for r in rows:
-        r.update(ours=is_ours, **cpu_fields(is_ours))
+        r.update(ours=is_ours, **cpu_fields())
         r["cmd"] = " ".join(os.path.relpath(c, REPO) if c.startswith(REPO) else c for c in cmd)
         print(json.dumps({k: v for k, v in r.items() if k not in ("all_s", "cmd")}),
               file=sys.stderr, flush=True)
@@ -552,59 +552,76 @@ def accel_peer(args) -> list[dict]:
 
 
 ISA_CAP_OPTION = "--xla_cpu_max_isa="
+AVX2_ONLY = "avx2_only"  # bench/avx2_only.c, built into bench/.build/avx2_only.so
+
+
+def cpu_flags() -> list[str]:
+    """The CPU's feature flags as the kernel sees them (/proc/cpuinfo; the CPUID answers that
+    `bench/avx2_only.c` changes are the libraries' view, not the kernel's)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            return next((line.split(":", 1)[1].split() for line in f
+                         if line.startswith("flags")), [])
+    except OSError:
+        return []
 
 
 def cpu_isa() -> str:
     """The widest x86 vector extension of this CPU that the kernels use: AMX, AVX-512 or
     AVX2 (from /proc/cpuinfo's flags)."""
-    try:
-        with open("/proc/cpuinfo") as f:
-            flags = next((line.split(":", 1)[1].split() for line in f
-                          if line.startswith("flags")), [])
-    except OSError:
-        flags = []
+    flags = cpu_flags()
     for flag, name in (("amx_tile", "AMX"), ("avx512f", "AVX-512"), ("avx2", "AVX2")):
         if flag in flags:
             return name
     return platform.machine()
 
 
-def cpu_fields(is_ours: bool) -> dict:
+def isa_cap() -> str | None:
+    """The vector ISA this run caps both sides to (`cap_isa`), None when uncapped."""
+    return "AVX2" if f"{AVX2_ONLY}.so" in os.environ.get("LD_PRELOAD", "") else None
+
+
+def cpu_fields() -> dict:
     """What every row records about the CPU: its model, its vector ISA and the cap the run
-    put on it (ours: XLA's `--xla_cpu_max_isa` in XLA_FLAGS; the reference: oneDNN's
-    ONEDNN_MAX_CPU_ISA), None when uncapped."""
-    if is_ours:
-        flags = os.environ.get("XLA_FLAGS", "").split()
-        cap = next((f[len(ISA_CAP_OPTION):] for f in flags if f.startswith(ISA_CAP_OPTION)),
-                   None)
-    else:
-        cap = os.environ.get("ONEDNN_MAX_CPU_ISA")
-    fields = {"cpu_model": cpu_model(), "isa": cpu_isa(), "isa_cap": cap}
-    if is_ours and cap and fields["isa"] != cap:
-        fields["isa_cap_note"] = YNNPACK_UNCAPPED
-    return fields
+    put on both sides (None when uncapped)."""
+    return {"cpu_model": cpu_model(), "isa": cpu_isa(), "isa_cap": isa_cap()}
 
 
-# XLA's cap reaches the code XLA generates, not YNNPACK's kernels (the train step's and the
-# sampler's convolutions and dots), which pick their ISA from CPUID: `perf record` of a
-# 5 x 5 convolution's gradient under the cap, on an Intel Xeon with AVX-512, spent 66 % in
-# `ynn::dot_fp32_5x64x1_1x16x1_avx512`. oneDNN's cap does reach the reference
-# (ONEDNN_VERBOSE: `jit:avx512_core` -> `jit:avx2`). bench/README.md, session 24.
-YNNPACK_UNCAPPED = ("XLA-generated code only; YNNPACK's kernels (convolutions, dots) still "
-                    "use this CPU's widest ISA")
+def build_avx2_only() -> str:
+    """Compiles bench/avx2_only.c (`cc`) into bench/.build; returns the library's path."""
+    out = os.path.join(HERE, ".build", f"{AVX2_ONLY}.so")
+    os.makedirs(os.path.dirname(out), exist_ok=True)
+    cc = shutil.which("cc") or shutil.which("gcc")
+    if cc is None:
+        raise SystemExit("--isa AVX2 builds bench/avx2_only.c: install a C compiler (cc)")
+    subprocess.run([cc, "-O2", "-shared", "-fPIC", "-o", out,
+                    os.path.join(HERE, f"{AVX2_ONLY}.c")], check=True)
+    return out
 
 
 def cap_isa(isa: str) -> None:
-    """Caps the vector ISA of every case run from here on: XLA's for ours, oneDNN's for the
-    reference (both spell AVX2 the same)."""
+    """Makes every case run from here on, ours and the reference's, run on an AVX2-only CPU as
+    far as their kernels can tell: CPUID answers without AVX-512, AMX and AVX-VNNI
+    (bench/avx2_only.c, preloaded), so YNNPACK, oneDNN, PyTorch's ATen and XLA's code
+    generator all pick their AVX2 kernels; XLA's own cap besides (LLVM may also read the CPU's
+    model). `--xla_cpu_max_isa` and `ONEDNN_MAX_CPU_ISA` alone leave YNNPACK at the CPU's
+    widest ISA (bench/README.md, sessions 24 and 38). Nothing to hide on an AVX2-only CPU."""
+    if cpu_isa() == isa:
+        return
+    if "cpuid_fault" not in cpu_flags():
+        raise SystemExit(f"--isa {isa}: this {cpu_isa()} CPU cannot hide its wider extensions "
+                         "(no `cpuid_fault` in /proc/cpuinfo); run on an AVX2-only CPU")
+    os.environ["LD_PRELOAD"] = build_avx2_only()
     flags = [f for f in os.environ.get("XLA_FLAGS", "").split()
              if not f.startswith(ISA_CAP_OPTION)]
     os.environ["XLA_FLAGS"] = " ".join([*flags, ISA_CAP_OPTION + isa])
-    os.environ["ONEDNN_MAX_CPU_ISA"] = isa
-    if cpu_isa() != isa:
-        print(f"warning: the {isa} cap on this {cpu_isa()} CPU reaches the reference's oneDNN "
-              f"kernels but only {YNNPACK_UNCAPPED}: not a stand-in for an {isa}-only CPU",
-              file=sys.stderr)
+    check = subprocess.run(
+        [sys.executable, "-c", "from numpy._core._multiarray_umath import __cpu_features__ "
+         "as f; print(f['AVX2'], f['AVX512F'])"], capture_output=True, text=True)
+    if check.stdout.split() != ["True", "False"]:
+        raise SystemExit(f"--isa {isa}: bench/avx2_only.c did not hide AVX-512 from CPUID "
+                         f"(numpy sees AVX2, AVX512F = {check.stdout.split()}; "
+                         f"{check.stderr.strip()[-500:]})")
 
 
 def cpu_model() -> str:
@@ -629,7 +646,7 @@ def main_all(args) -> None:
 
     rows: list[dict] = [{
         "what": "env", "machine": platform.processor() or platform.machine(),
-        **cpu_fields(True), "ref_isa_cap": cpu_fields(False)["isa_cap"],
+        **cpu_fields(),
         "cpus": os.cpu_count(), "python": platform.python_version(), "jax": jax.__version__,
         **device_fields(), "date": time.strftime("%Y-%m-%d %H:%M:%S"),
     }]
@@ -664,9 +681,9 @@ def main() -> None:
                    "reference on the same CUDA device (bench/results_accel.json)")
     p.add_argument("--ref", default=TORCH_REF, help="the reference's folder (accel suite)")
     p.add_argument("--isa", choices=("AVX2",),
-                   help="cap both sides' vector ISA (XLA_FLAGS --xla_cpu_max_isa and "
-                   "ONEDNN_MAX_CPU_ISA; ours' YNNPACK kernels ignore the cap, so on a wider "
-                   "CPU this is no AVX2-only machine; default out: bench/results_avx2.json)")
+                   help="run both sides as on an AVX2-only CPU: CPUID without AVX-512 and AMX "
+                   "(bench/avx2_only.c; needs cc and the CPU's `cpuid_fault`; default out: "
+                   "bench/results_avx2.json)")
     p.add_argument("--no-first", action="store_true",
                    help="skip the time-to-first-result rows (bench/first_result.py)")
     sub = p.add_subparsers(dest="cmd")
@@ -693,8 +710,10 @@ def main() -> None:
     c.add_argument("--workdir")
     c.add_argument("--data")
     args = p.parse_args()
-    if args.isa:
+    if args.isa and isa_cap() != args.isa:
         cap_isa(args.isa)
+        if args.cmd == "case" and isa_cap():  # this process runs it: again, under the cap
+            os.execv(sys.executable, [sys.executable, *sys.argv])
     default = {"accel": "results_accel.json"}.get(args.suite) or (
         "results_avx2.json" if args.isa else "results.json")
     args.out = args.out or os.path.join(HERE, default)

@@ -9,9 +9,10 @@ at once and how many scenes are vmapped together, the device mesh, and returning
 compiler's freed host memory. Also where a multi-process job starts and which process
 writes.
 
-What differs between CPUs, read once from /proc/cpuinfo (`cpu_vendor`): which library runs
-the train step's convolutions and the row bands of their weight gradients (Intel: Eigen,
-32-row bands; AMD: YNNPACK, 64-row bands above 128 rows), both measured (bench/README.md).
+What differs between CPUs, read once at start-up (`cpu_vendor` from /proc/cpuinfo,
+`cpu_has_avx512` from CPUID): which library runs the train step's convolutions and the row
+bands of their weight gradients (Intel, and every CPU without AVX-512: Eigen, 32-row bands;
+AMD with AVX-512: YNNPACK, 64-row bands above 128 rows), all measured (bench/README.md).
 
 Concurrent calls: XLA:CPU runs calls made from different host threads side by side. One call
 at a time leaves a core idle whenever the program runs a small serial operation between its
@@ -75,7 +76,7 @@ def weight_gradient_bands() -> tuple[int, int] | None:
     XLA:CPU through YNNPACK (AMD): (128, 64). Its weight gradient at 320 x 320 ran at a
     quarter of its speed at 128 x 128 (5 x 5, 32 -> 128, one Zen 4 core: 857 ms, 240 ms in
     bands of 64 rows); banded at grid 128 the `paper` step compiled 12 s longer and ran 4 %
-    slower (session 23). Through Eigen (Intel, `train_eigen_convolutions`): (32, 32); on the
+    slower (session 23). Through Eigen (`train_eigen_convolutions`): (32, 32); on the
     Xeon of session 24, 2 cores, the `paper` step at grid 128, T 25 took 6.84 s unbanded, 4.45
     s in bands of 64 rows, 4.32 in 32, 4.64 in 16; at grid 320, T 5 8.62 s unbanded, 6.08 /
     5.62 / 5.77 s in bands of 64 / 128 / 32; the `cpu` preset 3.01 -> 2.74 s in bands of 32
@@ -153,16 +154,35 @@ def cpu_vendor() -> str:
     return ""
 
 
+@functools.cache
+def cpu_has_avx512() -> bool:
+    """Whether the CPU runs AVX-512 (AVX512F), as CPUID tells numpy's kernel dispatch: the
+    answer every kernel library gets from CPUID at run time (YNNPACK, oneDNN, LLVM), so a CPU
+    whose CPUID hides AVX-512 (`bench/avx2_only.c`) counts as AVX2-only, as it does for them.
+    /proc/cpuinfo's flags where numpy's table is missing."""
+    try:
+        from numpy._core._multiarray_umath import __cpu_features__
+
+        return bool(__cpu_features__["AVX512F"])
+    except (ImportError, KeyError):
+        try:
+            with open("/proc/cpuinfo") as f:
+                return any(line.startswith("flags") and "avx512f" in line.split() for line in f)
+        except OSError:
+            return False
+
+
 def train_eigen_convolutions() -> bool:
-    """Whether the train step's convolutions run through XLA's Eigen path (else YNNPACK's):
-    on Intel CPUs. The weight gradients decide it, and they go opposite ways on the two
-    vendors we measure on. Intel Xeon with AVX-512 and AMX, 2 cores (session 24): 5 x 5,
-    64 -> 128 at 128 x 128, forward + weight gradient 84 ms through Eigen against 136 through
-    YNNPACK; the `paper` step 7.41 -> 6.58 s at grid 128, T 25 and 8.75 -> 5.56 s at grid 320,
-    T 5. AMD EPYC Zen 4 (session 11): Eigen's weight gradients 2-4x slower than YNNPACK's
-    (76 against 35.5 ms for 5 x 5, 32 -> 128). Not measured on AVX2-only CPUs (Zen 3: AMD,
-    so YNNPACK). bench/README.md."""
-    return on_cpu() and cpu_vendor() == "GenuineIntel"
+    """Whether the train step's convolutions run through XLA's Eigen path, whose matrix
+    products are oneDNN's (else YNNPACK's): on Intel CPUs and on every CPU without AVX-512.
+    The weight gradients decide it. Intel Xeon with AVX-512 and AMX, 2 cores (session 24):
+    5 x 5, 64 -> 128 at 128 x 128, forward + weight gradient 84 ms through Eigen against 136
+    through YNNPACK; the `paper` step 7.41 -> 6.58 s at grid 128, T 25 and 8.75 -> 5.56 s at
+    grid 320, T 5. AMD EPYC Zen 4 (session 11): Eigen's weight gradients 2-4x slower than
+    YNNPACK's (76 against 35.5 ms for 5 x 5, 32 -> 128). AVX2 only (that Xeon with AVX-512 and
+    AMX hidden from CPUID, session 38): the `paper` step at grid 128, T 25 took 6.33 s through
+    Eigen against 10.61 s through YNNPACK (the reference: 6.79 s). bench/README.md."""
+    return on_cpu() and (cpu_vendor() == "GenuineIntel" or not cpu_has_avx512())
 
 
 # Runs of more steps than this compile the one-program train step in the background while
@@ -219,10 +239,10 @@ def scoring_compiler_options() -> dict | None:
     On XLA:CPU its convolutions then run through XLA's Eigen path instead of YNNPACK: the
     backbone's 3 x 3, 32 -> 32 convolution takes 1.7 ms there at 128 x 128 against 3.0 ms,
     the 5 x 5 ones the same; YNNPACK keeps what it runs by default besides convolutions (dots
-    and reductions). The train step keeps YNNPACK's convolutions on AMD CPUs, whose weight
-    gradients are 2-4x faster than Eigen's there (`train_eigen_convolutions`), and so does the
-    sampler, which ran 7 % slower with Eigen's on a Zen 4 (bench/README.md). None (XLA's
-    defaults) on other backends.
+    and reductions). The train step keeps YNNPACK's convolutions on AMD CPUs with AVX-512,
+    whose weight gradients are 2-4x faster than Eigen's there (`train_eigen_convolutions`),
+    and so does the sampler, which ran 7 % slower with Eigen's on a Zen 4 (bench/README.md).
+    None (XLA's defaults) on other backends.
     """
     if not on_cpu():
         return None
