@@ -73,10 +73,10 @@ def weight_gradient_bands() -> tuple[int, int] | None:
     summed over bands of at most `rows` rows (`model.network.conv`); None: never (accelerators
     keep their own).
 
-    XLA:CPU through YNNPACK (AMD): (128, 64). Its weight gradient at 320 x 320 ran at a
-    quarter of its speed at 128 x 128 (5 x 5, 32 -> 128, one Zen 4 core: 857 ms, 240 ms in
-    bands of 64 rows); banded at grid 128 the `paper` step compiled 12 s longer and ran 4 %
-    slower (session 23). Through Eigen (`train_eigen_convolutions`): (32, 32); on the
+    XLA:CPU through YNNPACK (AMD with AVX-512): (128, 64). Its weight gradient at 320 x 320
+    ran at a quarter of its speed at 128 x 128 (5 x 5, 32 -> 128, one Zen 4 core: 857 ms,
+    240 ms in bands of 64 rows); banded at grid 128 the `paper` step compiled 12 s longer and
+    ran 4 % slower (session 23). Through Eigen (`train_eigen_convolutions`): (32, 32); on the
     Xeon of session 24, 2 cores, the `paper` step at grid 128, T 25 took 6.84 s unbanded, 4.45
     s in bands of 64 rows, 4.32 in 32, 4.64 in 16; at grid 320, T 5 8.62 s unbanded, 6.08 /
     5.62 / 5.77 s in bands of 64 / 128 / 32; the `cpu` preset 3.01 -> 2.74 s in bands of 32
