@@ -478,6 +478,7 @@ def cpu_ours(args) -> list[dict]:
     rows += ours("sample", grid=128, batch=32, runs=big, parallel=32)
     rows += ours("train", grid=320, steps=5, batch=1, runs=big)
     rows += ours("train", grid=320, steps=5, batch=1, runs=big, remat="off")
+    rows += ours("train", grid=320, steps=25, batch=1, runs=big)  # the paper's window
     rows += ours("score", grid=320, steps=25, batch=1, runs=big)
     for b in (1, 32):
         rows += ours("sample", grid=320, batch=b, runs=big)
@@ -510,6 +511,8 @@ def cpu_peer(args) -> list[dict]:
             rows += peer(py, "sample", "--grid", "128", "--batch", b, *m, *fast)
         rows += peer(py, "train", "--grid", "320", "--steps", "5", "--runs", "3", *m,
                      *fast)
+        if not fast:  # the paper's window, float32 only (its peer), to keep the run short
+            rows += peer(py, "train", "--grid", "320", "--steps", "25", "--runs", "3", *m)
         rows += peer(py, "score", "--grid", "320", "--steps", "25", "--runs", "3", *m,
                      *fast)
         rows += peer(py, "sample", "--grid", "320", "--batch", "8", "--runs", "3", *m, *fast)
