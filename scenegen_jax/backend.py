@@ -179,9 +179,12 @@ def train_eigen_convolutions() -> bool:
     5 x 5, 64 -> 128 at 128 x 128, forward + weight gradient 84 ms through Eigen against 136
     through YNNPACK; the `paper` step 7.41 -> 6.58 s at grid 128, T 25 and 8.75 -> 5.56 s at
     grid 320, T 5. AMD EPYC Zen 4 (session 11): Eigen's weight gradients 2-4x slower than
-    YNNPACK's (76 against 35.5 ms for 5 x 5, 32 -> 128). AVX2 only (that Xeon with AVX-512 and
-    AMX hidden from CPUID, session 38): the `paper` step at grid 128, T 25 took 6.33 s through
-    Eigen against 10.61 s through YNNPACK (the reference: 6.79 s). bench/README.md."""
+    YNNPACK's (76 against 35.5 ms for 5 x 5, 32 -> 128). With the gradients in the libraries'
+    form and the bands of sessions 24-32, the whole steps tie there within the machine's noise
+    (session 39: `paper` at grid 128, T 25 and grid 320, T 5 and T 25; the `cpu` preset), and
+    YNNPACK compiles faster, so AMD with AVX-512 keeps it. AVX2 only (that Xeon with AVX-512
+    and AMX hidden from CPUID, session 38): the `paper` step at grid 128, T 25 took 6.33 s
+    through Eigen against 10.61 s through YNNPACK (the reference: 6.79 s). bench/README.md."""
     return on_cpu() and (cpu_vendor() == "GenuineIntel" or not cpu_has_avx512())
 
 
@@ -239,9 +242,8 @@ def scoring_compiler_options() -> dict | None:
     On XLA:CPU its convolutions then run through XLA's Eigen path instead of YNNPACK: the
     backbone's 3 x 3, 32 -> 32 convolution takes 1.7 ms there at 128 x 128 against 3.0 ms,
     the 5 x 5 ones the same; YNNPACK keeps what it runs by default besides convolutions (dots
-    and reductions). The train step keeps YNNPACK's convolutions on AMD CPUs with AVX-512,
-    whose weight gradients are 2-4x faster than Eigen's there (`train_eigen_convolutions`),
-    and so does the sampler, which ran 7 % slower with Eigen's on a Zen 4 (bench/README.md).
+    and reductions). The train step keeps YNNPACK's convolutions on AMD CPUs with AVX-512
+    (`train_eigen_convolutions`), and so does the sampler, which ran 7 % slower with Eigen's on a Zen 4 (bench/README.md).
     None (XLA's defaults) on other backends.
     """
     if not on_cpu():
