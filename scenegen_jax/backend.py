@@ -243,7 +243,8 @@ def scoring_compiler_options() -> dict | None:
     backbone's 3 x 3, 32 -> 32 convolution takes 1.7 ms there at 128 x 128 against 3.0 ms,
     the 5 x 5 ones the same; YNNPACK keeps what it runs by default besides convolutions (dots
     and reductions). The train step keeps YNNPACK's convolutions on AMD CPUs with AVX-512
-    (`train_eigen_convolutions`), and so does the sampler, which ran 7 % slower with Eigen's on a Zen 4 (bench/README.md).
+    (`train_eigen_convolutions`), and so does the sampler, which ran 7 % slower with Eigen's
+    on a Zen 4 (bench/README.md).
     None (XLA's defaults) on other backends.
     """
     if not on_cpu():
