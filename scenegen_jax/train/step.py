@@ -268,19 +268,23 @@ class SplitTrainStep:
             return _apply_grads(state, cfg, unrolled, grads, 1, None)
 
         jit = functools.partial(jax.jit, compiler_options=train_compiler_options())
-        lowered = [jit(prologue).lower(state, batch)]
-        maps, map_gates, scenes, carry, g_params, g_map, _ = lowered[0].out_info
-        start = jax.ShapeDtypeStruct((), jnp.int32)
-        lowered.append(jit(forward).lower(state.params, map_gates, scenes, carry, start))
-        _, chunk_terms, vjp = lowered[1].out_info
-        lowered.append(jit(chunk_backward, donate_argnums=(2, 3)).lower(vjp, carry, g_params,
-                                                                        g_map))
-        terms = [chunk_terms] * sum(map(len, self._starts))
-        lowered.append(jit(epilogue, donate_argnums=0).lower(state, maps, scenes, g_params,
-                                                             g_map, terms))
-        with concurrent.futures.ThreadPoolExecutor(len(lowered)) as pool:
-            self._prologue, self._forward, self._backward, self._epilogue = pool.map(
-                lambda x: x.compile(), lowered)
+        with concurrent.futures.ThreadPoolExecutor(4) as pool:
+            # Each program compiles while the next is traced (compiling releases the GIL).
+            low = jit(prologue).lower(state, batch)
+            compiled = [pool.submit(low.compile)]
+            maps, map_gates, scenes, carry, g_params, g_map, _ = low.out_info
+            start = jax.ShapeDtypeStruct((), jnp.int32)
+            low = jit(forward).lower(state.params, map_gates, scenes, carry, start)
+            compiled.append(pool.submit(low.compile))
+            _, chunk_terms, vjp = low.out_info
+            low = jit(chunk_backward, donate_argnums=(2, 3)).lower(vjp, carry, g_params, g_map)
+            compiled.append(pool.submit(low.compile))
+            terms = [chunk_terms] * sum(map(len, self._starts))
+            low = jit(epilogue, donate_argnums=0).lower(state, maps, scenes, g_params, g_map,
+                                                        terms)
+            compiled.append(pool.submit(low.compile))
+            self._prologue, self._forward, self._backward, self._epilogue = (
+                c.result() for c in compiled)
         release_freed_memory()
 
     def __call__(self, state: TrainState, batch: Batch) -> tuple[TrainState, dict]:
