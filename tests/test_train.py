@@ -556,6 +556,27 @@ def test_initial_parameters_are_the_same_compiled_alone_or_inside_a_trace():
         np.testing.assert_allclose(a, t, rtol=1e-6, atol=1e-7)
 
 
+def test_a_fresh_state_holds_the_parameters_of_its_seed_and_zero_optimizer_moments():
+    """`init_state` compiles parameters and optimizer state as one program: its parameters
+    are `init_params` of the first half of the seed's key split, its step 0, Adam's moments
+    zero, and its key the other half; `jax.eval_shape` of it works (resuming uses it)."""
+    from scenegen_jax.model.network import init_params
+    from scenegen_jax.train.step import init_state
+
+    state = init_state(CFG, seed=5)
+    init_key, base = jax.random.split(jax.random.key(5))
+    expected = init_params(CFG, init_key)
+    for a, e in zip(jax.tree.leaves(state.params), jax.tree.leaves(expected), strict=True):
+        np.testing.assert_allclose(a, e, rtol=1e-6, atol=1e-7)
+    assert int(state.step) == 0
+    np.testing.assert_array_equal(state.key, jax.random.key_data(base))
+    moments = [x for x in jax.tree.leaves(state.opt_state) if x.ndim > 0]
+    assert len(moments) >= 2 * len(jax.tree.leaves(expected))
+    assert all(not np.any(np.asarray(x)) for x in moments)
+    shapes = jax.eval_shape(lambda: init_state(CFG))
+    assert jax.tree.structure(shapes) == jax.tree.structure(state)
+
+
 def test_a_parameter_of_the_wrong_shape_is_named_when_the_network_is_applied():
     """The network reads its stored parameters without flax's check (which traces each
     initialiser at every apply) and checks their shapes itself: a parameter of another
