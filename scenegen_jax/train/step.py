@@ -269,20 +269,22 @@ class SplitTrainStep:
 
         jit = functools.partial(jax.jit, compiler_options=train_compiler_options())
         with concurrent.futures.ThreadPoolExecutor(4) as pool:
-            # Each program compiles while the next is traced (compiling releases the GIL).
-            low = jit(prologue).lower(state, batch)
-            compiled = [pool.submit(low.compile)]
-            maps, map_gates, scenes, carry, g_params, g_map, _ = low.out_info
+            compiled = []
+
+            def compile_next(lowered):  # compiles while the next is traced (no GIL held)
+                compiled.append(pool.submit(lowered.compile))
+                return lowered.out_info
+
+            maps, map_gates, scenes, carry, g_params, g_map, _ = compile_next(
+                jit(prologue).lower(state, batch))
             start = jax.ShapeDtypeStruct((), jnp.int32)
-            low = jit(forward).lower(state.params, map_gates, scenes, carry, start)
-            compiled.append(pool.submit(low.compile))
-            _, chunk_terms, vjp = low.out_info
-            low = jit(chunk_backward, donate_argnums=(2, 3)).lower(vjp, carry, g_params, g_map)
-            compiled.append(pool.submit(low.compile))
+            _, chunk_terms, vjp = compile_next(
+                jit(forward).lower(state.params, map_gates, scenes, carry, start))
+            compile_next(jit(chunk_backward, donate_argnums=(2, 3)).lower(vjp, carry, g_params,
+                                                                           g_map))
             terms = [chunk_terms] * sum(map(len, self._starts))
-            low = jit(epilogue, donate_argnums=0).lower(state, maps, scenes, g_params, g_map,
-                                                        terms)
-            compiled.append(pool.submit(low.compile))
+            compile_next(jit(epilogue, donate_argnums=0).lower(state, maps, scenes, g_params,
+                                                               g_map, terms))
             self._prologue, self._forward, self._backward, self._epilogue = (
                 c.result() for c in compiled)
         release_freed_memory()
