@@ -132,6 +132,15 @@ def init_compiler_options() -> dict | None:
     return _backend_level(0) if on_cpu() else None
 
 
+def compiled_init(init: Callable[[Any], Any], key) -> Any:
+    """`init(key)` compiled with `init_compiler_options`, or traced in place where `key` is a
+    tracer (`jax.eval_shape`, an enclosing `jax.jit`): JAX accepts compiler options only on
+    a top-level jit."""
+    if isinstance(key, jax.core.Tracer):
+        return init(key)
+    return jax.jit(init, compiler_options=init_compiler_options())(key)
+
+
 # YNNPACK keeps dots and reductions, and the convolutions go to XLA's Eigen path.
 EIGEN_CONVOLUTIONS = {
     "xla_cpu_experimental_ynn_fusion_type": (

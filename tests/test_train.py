@@ -556,12 +556,18 @@ def test_initial_parameters_are_the_same_compiled_alone_or_inside_a_trace():
         np.testing.assert_allclose(a, t, rtol=1e-6, atol=1e-7)
 
 
-def test_a_fresh_state_holds_the_parameters_of_its_seed_and_zero_optimizer_moments():
+def test_a_fresh_state_holds_the_parameters_of_its_seed_and_zero_optimizer_moments(monkeypatch):
     """`init_state` compiles parameters and optimizer state as one program: its parameters
     are `init_params` of the first half of the seed's key split, its step 0, Adam's moments
-    zero, and its key the other half; `jax.eval_shape` of it works (resuming uses it)."""
+    zero, and its key the other half; `jax.eval_shape` of it works (resuming uses it), also
+    where the initialisation's compiler options are set (outside this suite, whose XLA_FLAGS
+    set the level: nested jits must not take them)."""
+    from scenegen_jax.backend import init_compiler_options
     from scenegen_jax.model.network import init_params
     from scenegen_jax.train.step import init_state
+
+    monkeypatch.setenv("XLA_FLAGS", "")
+    assert init_compiler_options(), "on CPU the initialisation has compiler options"
 
     state = init_state(CFG, seed=5)
     init_key, base = jax.random.split(jax.random.key(5))

@@ -21,8 +21,8 @@ import numpy as np
 from flax import errors
 
 from scenegen_jax.backend import (
+    compiled_init,
     explicit_conv_gradients,
-    init_compiler_options,
     weight_gradient_bands,
 )
 from scenegen_jax.config import Config
@@ -593,6 +593,4 @@ def init_params(cfg: Config, key):
     def init(k):
         return net.init(k, m, a, z, z)["params"]
 
-    if isinstance(key, jax.core.Tracer):  # inside a trace (`jax.eval_shape`, `jax.jit`)
-        return init(key)
-    return jax.jit(init, compiler_options=init_compiler_options())(key)
+    return compiled_init(init, key)

@@ -17,7 +17,7 @@ from jax.sharding import PartitionSpec as P
 from scenegen_jax.backend import (
     DATA_AXIS,
     QUICK_START_STEPS,
-    init_compiler_options,
+    compiled_init,
     quick_start_training,
     release_freed_memory,
     train_compiler_options,
@@ -128,7 +128,7 @@ def init_state(cfg: Config, seed: int | None = None) -> TrainState:
         )
 
     key = jax.random.key(cfg.seed if seed is None else seed)
-    return jax.jit(fresh, compiler_options=init_compiler_options())(key)
+    return compiled_init(fresh, key)
 
 
 def loss_fn(params, cfg: Config, maps, scene):
