@@ -12,7 +12,9 @@ writes.
 What differs between CPUs, read once at start-up (`cpu_vendor` from /proc/cpuinfo,
 `cpu_has_avx512` from CPUID): which library runs the train step's convolutions and the row
 bands of their weight gradients (Intel, and every CPU without AVX-512: Eigen, 32-row bands;
-AMD with AVX-512: YNNPACK, 64-row bands above 128 rows), all measured (bench/README.md).
+AMD with AVX-512: YNNPACK, 64-row bands above 128 rows), and how the 5 x 5 convolutions of
+up to one 128 x 128 scene run forward (without AVX-512: Winograd's F(4, 5), `model.winograd`;
+else directly), all measured (bench/README.md).
 
 Concurrent calls: XLA:CPU runs calls made from different host threads side by side. One call
 at a time leaves a core idle whenever the program runs a small serial operation between its
@@ -195,6 +197,27 @@ def train_eigen_convolutions() -> bool:
     and AMX hidden from CPUID, session 38): the `paper` step at grid 128, T 25 took 6.33 s
     through Eigen against 10.61 s through YNNPACK (the reference: 6.79 s). bench/README.md."""
     return on_cpu() and (cpu_vendor() == "GenuineIntel" or not cpu_has_avx512())
+
+
+# Most output tiles (4 x 4 pixels each) of a convolution that Winograd's algorithm takes: one
+# 128 x 128 scene. Its products are 64 x tiles x Co floats, 32 MB there; at 16 scenes (the
+# sampler's batch per call) they are 0.5 GB and the memory traffic loses to the direct
+# convolution (bench/README.md, session 40).
+WINOGRAD_MAX_TILES = 1024
+
+
+def winograd_convolutions(kernel: tuple[int, ...], tiles: int) -> bool:
+    """Whether a convolution with this kernel size (kh, kw) and this many 4 x 4 output tiles
+    runs its forward pass through Winograd's F(4, 5) (`model.winograd`): the 5 x 5 ones of up
+    to `WINOGRAD_MAX_TILES` tiles, on CPUs without AVX-512. There the matrix products run at
+    half AVX-512's width and the 6.25x fewer products win; with AVX-512 the transforms' memory
+    traffic costs more than the products save. Intel Xeon with AVX-512 and AMX hidden from
+    CPUID (`bench/avx2_only.c`), session 40, alternating: the `paper` scorer at grid 128, T 25,
+    B 1 1.18-1.19x faster (3.55 -> 2.99 s, 3.86 -> 3.28 s), its train step as fast (13.80
+    against 14.02 s); with AVX-512 a lone 5 x 5, 32 -> 128 forward took 30 ms against 16
+    direct (bench/README.md)."""
+    return (on_cpu() and tuple(kernel) == (5, 5) and tiles <= WINOGRAD_MAX_TILES
+            and not cpu_has_avx512())
 
 
 # Runs of more steps than this compile the one-program train step in the background while

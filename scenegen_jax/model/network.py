@@ -24,9 +24,11 @@ from scenegen_jax.backend import (
     compiled_init,
     explicit_conv_gradients,
     weight_gradient_bands,
+    winograd_convolutions,
 )
 from scenegen_jax.config import Config
 from scenegen_jax.distributions import params as P
+from scenegen_jax.model import winograd
 from scenegen_jax.raster.actors import ACTOR_CHANNELS, window_origin, window_size
 from scenegen_jax.raster.map import NEAREST_LANE_CHANNELS, ORIENTATION_CHANNELS
 from scenegen_jax.scene import NUM_CLASSES
@@ -113,19 +115,56 @@ def _banded_conv_bwd(band_rows, res, g):
 _banded_conv.defvjp(_banded_conv_fwd, _banded_conv_bwd)
 
 
-def conv(x, w, b=None):
+def _direct_conv(x, w):
     """'SAME' stride-1 convolution, x [B, H, W, Ci], w [kh, kw, Ci, Co]. Where the backend
     bands weight gradients (`backend.weight_gradient_bands`) and x has more rows than its
     threshold, the weight gradient is summed over row bands; where it wants the gradients in
     its library's form (`backend.explicit_conv_gradients`), they are written so (one band)."""
     bands = weight_gradient_bands()
     if bands is not None and x.shape[1] > bands[0]:
-        y = _banded_conv(x, w, bands[1])
-    elif explicit_conv_gradients():
-        y = _banded_conv(x, w, x.shape[1])
+        return _banded_conv(x, w, bands[1])
+    if explicit_conv_gradients():
+        return _banded_conv(x, w, x.shape[1])
+    return _conv(x, w)
+
+
+@jax.custom_vjp
+def _winograd_conv_sum(xs, ws):
+    return winograd.conv_sum(xs, ws)
+
+
+def _winograd_conv_sum_fwd(xs, ws):
+    return winograd.conv_sum(xs, ws), (xs, ws)
+
+
+def _winograd_conv_sum_bwd(res, g):
+    """The direct convolutions' gradients: Winograd's forward pass only."""
+    xs, ws = res
+    grads = [jax.vjp(_direct_conv, x, w)[1](g) for x, w in zip(xs, ws, strict=True)]
+    return tuple(gx for gx, _ in grads), tuple(gw for _, gw in grads)
+
+
+_winograd_conv_sum.defvjp(_winograd_conv_sum_fwd, _winograd_conv_sum_bwd)
+
+
+def conv_sum(terms, b=None):
+    """sum of conv(x, w) over terms [(x, w), ...] (see `conv`), plus b. Where the backend
+    takes Winograd's algorithm for these kernels (`backend.winograd_convolutions`), the sum is
+    one Winograd convolution over the inputs' joined channels (gradients: the direct ones)."""
+    xs, ws = (tuple(t) for t in zip(*terms, strict=True))
+    if winograd_convolutions(ws[0].shape[:2], winograd.tiles(xs[0].shape)) and all(
+            w.shape[:2] == ws[0].shape[:2] for w in ws):
+        y = _winograd_conv_sum(xs, ws)
     else:
-        y = _conv(x, w)
+        y = functools.reduce(jnp.add, [_direct_conv(x, w) for x, w in terms])
     return y if b is None else y + b
+
+
+def conv(x, w, b=None):
+    """'SAME' stride-1 convolution, x [B, H, W, Ci], w [kh, kw, Ci, Co], plus b: direct
+    (`_direct_conv`) or, where the backend takes it for this kernel size, Winograd's F(4, r)
+    forward pass (`conv_sum`)."""
+    return conv_sum([(x, w)], b)
 
 
 def conv_per_example(x, w, b):
@@ -448,11 +487,11 @@ class SceneGenNet(nn.Module):
             state = self.initial_state(input_gates.shape[0])
         (h1, c1), (h2, c2) = state
         h1, c1 = lstm_gates(input_gates if zero else input_gates + conv(h1, self.lstm1_rec), c1)
-        # Two convolutions instead of one over concat([h1, h2]): the same sum, and XLA:CPU
-        # fuses the concatenation's gradient badly in the unrolled backward pass.
+        # A sum of two convolutions instead of one over concat([h1, h2]): the same sum, and
+        # XLA:CPU fuses the concatenation's gradient badly in the unrolled backward pass.
         h = self.cfg.hidden
         w2, b2 = self.lstm2_w, self.lstm2_b
-        gates2 = conv(h1, w2[:, :, :h]) + (b2 if zero else conv(h2, w2[:, :, h:], b2))
+        gates2 = conv_sum([(h1, w2[:, :, :h])] + ([] if zero else [(h2, w2[:, :, h:])]), b2)
         h2, c2 = lstm_gates(gates2, c2)
         return ((h1, c1), (h2, c2)), h2
 
