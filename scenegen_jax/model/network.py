@@ -162,8 +162,8 @@ def conv_sum(terms, b=None):
 
 def conv(x, w, b=None):
     """'SAME' stride-1 convolution, x [B, H, W, Ci], w [kh, kw, Ci, Co], plus b: direct
-    (`_direct_conv`) or, where the backend takes it for this kernel size, Winograd's F(4, r)
-    forward pass (`conv_sum`)."""
+    (`_direct_conv`) or, where the backend takes it for this kernel and input size, Winograd's
+    F(4, r) forward pass (`conv_sum`)."""
     return conv_sum([(x, w)], b)
 
 
