@@ -68,7 +68,7 @@ def _combine(coefficients, terms):
     for c, t in zip(coefficients, terms, strict=True):
         if c == 0:
             continue
-        t = t if c == 1 else -t if c == -1 else t * np.float32(c)
+        t = t if c == 1 else -t if c == -1 else t * float(c)  # keeps t's dtype
         out = t if out is None else out + t
     return out
 
