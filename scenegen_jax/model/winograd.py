@@ -6,8 +6,9 @@ Networks", 2016) computes a 4 x 4 tile of outputs from an (r + 3) x (r + 3) tile
 each input tile is transformed (B^T d B), multiplied element by element with the transformed
 kernel (G g G^T), summed over input channels (one matrix product per element of the tile),
 and transformed back (A^T m A). For a 5 x 5 kernel that is 64 products per 16 outputs per
-input channel instead of 400: 6.25x fewer. The transforms are sums of a few shifted slices
-with constant weights, which XLA fuses into single passes over memory.
+input channel instead of 400: 6.25x fewer. The input transform is sums of a few shifted
+slices with constant weights, which XLA fuses into single passes over memory; the output
+transform one small matrix product (A^T (x) A^T, 16 x 64) and a transpose.
 
 The matrices come from the Cook-Toom construction on the points 0, 1, -1, 2, -2, 1/2, -1/2 and
 infinity: A^T and G are written down from the points and B^T is solved exactly from the
@@ -105,17 +106,15 @@ def _kernel(w):
 
 def _output(m, b: int, th: int, tw: int, r: int):
     """The output tiles [B, TILE * th, TILE * tw, Co] of an r x r kernel's products
-    m [n * n, B * th * tw, Co] (A^T m A per tile)."""
+    m [n * n, B * th * tw, Co]: A^T m A per tile, as one matrix product of the Kronecker
+    product A^T (x) A^T [TILE * TILE, n * n] with m, then one transpose that interleaves the
+    tiles' rows and columns. Written as sums of slices stacked into the tiles, XLA:CPU's fusion
+    emitters (the sampler's) ran it at 80 ms for 128 x 128 x 128 outputs, longer than the
+    products (bench/README.md, session 41)."""
     at, _, _ = transforms(TILE, r)
-    n = at.shape[1]
-    m = m.reshape(n, n, b, th, tw, m.shape[-1])
-    half = [[_combine(at[s], [m[a, e] for e in range(n)]) for s in range(TILE)]
-            for a in range(n)]  # [a][s] -> [B, th, tw, Co]
-    out = jnp.stack([
-        jnp.stack([_combine(at[i], [half[a][s] for a in range(n)]) for s in range(TILE)], axis=3)
-        for i in range(TILE)
-    ], axis=2)  # [B, th, TILE, tw, TILE, Co]
-    return out.reshape(b, th * TILE, tw * TILE, -1)
+    y = jnp.einsum("ka,axo->kxo", jnp.asarray(np.kron(at, at), m.dtype), m)
+    y = y.reshape(TILE, TILE, b, th, tw, m.shape[-1]).transpose(2, 3, 0, 4, 1, 5)
+    return y.reshape(b, th * TILE, tw * TILE, -1)
 
 
 def tiles(shape: tuple[int, ...]) -> int:
