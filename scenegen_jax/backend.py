@@ -200,9 +200,12 @@ def train_eigen_convolutions() -> bool:
 
 
 # Most output tiles (4 x 4 pixels each) of a convolution that Winograd's algorithm takes: one
-# 128 x 128 scene. Its products are 64 x tiles x Co floats, 32 MB there; at 16 scenes (the
-# sampler's batch per call) they are 0.5 GB and the memory traffic loses to the direct
-# convolution (bench/README.md, session 40).
+# 128 x 128 scene (the sampler's every call on CPU, one scene each; the scorer's and the train
+# step's at grid 128, B 1). Its products are 64 x tiles x Co floats, 32 MB there. Above it,
+# AVX2 only (session 41): the train step at grid 320, T 5 took 13.6 s against 12.2 s direct
+# (Winograd's forward runs twice there, with remat), while the scorer gained (grid 128, B 8:
+# 30.2 -> 17.7 s; grid 320: 22.6 -> 14.0 s); this choice cannot yet tell the two apart
+# (bench/README.md).
 WINOGRAD_MAX_TILES = 1024
 
 
@@ -215,7 +218,10 @@ def winograd_convolutions(kernel: tuple[int, ...], tiles: int) -> bool:
     CPUID (`bench/avx2_only.c`), session 40, alternating: the `paper` scorer at grid 128, T 25,
     B 1 1.18-1.19x faster (3.55 -> 2.99 s, 3.86 -> 3.28 s), its train step as fast (13.80
     against 14.02 s); with AVX-512 a lone 5 x 5, 32 -> 128 forward took 30 ms against 16
-    direct (bench/README.md)."""
+    direct. Session 41, the output transform as one matrix product: against the reference,
+    batched sampling 2.16-2.29x (was 1.11-1.19x), scoring 1.76-1.95x, the train step
+    1.27-1.30x; with AVX-512 still slower than direct (32 -> 128: 80 against 69 ms with the
+    sampler's options) (bench/README.md)."""
     return (on_cpu() and tuple(kernel) == (5, 5) and tiles <= WINOGRAD_MAX_TILES
             and not cpu_has_avx512())
 
