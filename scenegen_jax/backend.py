@@ -204,8 +204,8 @@ def train_eigen_convolutions() -> bool:
 # step's at grid 128, B 1). Its products are 64 x tiles x Co floats, 32 MB there. Above it,
 # AVX2 only (session 41): the train step at grid 320, T 5 took 13.6 s against 12.2 s direct
 # (Winograd's forward runs twice there, with remat), while the scorer gained (grid 128, B 8:
-# 30.2 -> 17.7 s; grid 320: 22.6 -> 14.0 s); this choice cannot yet tell the two apart
-# (bench/README.md).
+# 29.7 -> 17.7 s; grid 320: 22.6 -> 14.0 s, means of two runs); this choice cannot yet tell
+# the two apart (bench/README.md).
 WINOGRAD_MAX_TILES = 1024
 
 
