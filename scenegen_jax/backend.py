@@ -12,9 +12,9 @@ writes.
 What differs between CPUs, read once at start-up (`cpu_vendor` from /proc/cpuinfo,
 `cpu_has_avx512` from CPUID): which library runs the train step's convolutions and the row
 bands of their weight gradients (Intel, and every CPU without AVX-512: Eigen, 32-row bands;
-AMD with AVX-512: YNNPACK, 64-row bands above 128 rows), and how the 5 x 5 convolutions run
-forward (without AVX-512: Winograd's F(4, 5), `model.winograd`, in the train step up to one
-128 x 128 scene; else directly), all measured (bench/README.md).
+AMD with AVX-512: YNNPACK, 64-row bands above 128 rows), and how the 5 x 5 convolutions of
+up to one 128 x 128 scene run forward (without AVX-512: Winograd's F(4, 5), `model.winograd`;
+else directly), all measured (bench/README.md).
 
 Concurrent calls: XLA:CPU runs calls made from different host threads side by side. One call
 at a time leaves a core idle whenever the program runs a small serial operation between its
