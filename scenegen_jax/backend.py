@@ -199,30 +199,31 @@ def train_eigen_convolutions() -> bool:
     return on_cpu() and (cpu_vendor() == "GenuineIntel" or not cpu_has_avx512())
 
 
-# Most output tiles (4 x 4 pixels each) of a convolution that a differentiated program (the
-# train step) takes through Winograd's algorithm: one 128 x 128 scene. AVX2 only (session 41):
-# above it the train step at grid 320, T 5 took 13.6 s against 12.2 s direct (its forward runs
-# twice, with remat, and compiled in 53 against 26 s), while the scorer, with no gradient,
-# gained at every size (grid 128, B 8: 29.7 -> 17.7 s; grid 320: 22.6 -> 14.0 s, means of two
-# runs; bench/README.md).
+# Most output tiles (4 x 4 pixels each) of a convolution that Winograd's algorithm takes: one
+# 128 x 128 scene (the sampler's every call on CPU, one scene each; the scorer's and the train
+# step's at grid 128, B 1). Its products are 64 x tiles x Co floats, 32 MB there. Above it,
+# AVX2 only (session 41): the train step at grid 320, T 5 took 13.6 s against 12.2 s direct
+# (Winograd's forward runs twice there, with remat), while the scorer gained (grid 128, B 8:
+# 29.7 -> 17.7 s; grid 320: 22.6 -> 14.0 s, means of two runs); this choice cannot yet tell
+# the two apart (bench/README.md).
 WINOGRAD_MAX_TILES = 1024
 
 
-def winograd_convolutions(kernel: tuple[int, ...], tiles: int, differentiated: bool) -> bool:
-    """Whether a convolution with this kernel size (kh, kw) and this many 4 x 4 output tiles runs
-    its forward pass through Winograd's F(4, 5) (`model.winograd`): the 5 x 5 ones on CPUs
-    without AVX-512, in a differentiated program only up to `WINOGRAD_MAX_TILES` tiles. There
-    the matrix products run at half AVX-512's width and the 6.25x fewer products win; with
-    AVX-512 the transforms' memory traffic costs more than the products save. Intel Xeon with
-    AVX-512 and AMX hidden from CPUID (`bench/avx2_only.c`), session 40, alternating: the
-    `paper` scorer at grid 128, T 25, B 1 1.18-1.19x faster (3.55 -> 2.99 s, 3.86 -> 3.28 s),
-    its train step as fast (13.80 against 14.02 s); with AVX-512 a lone 5 x 5, 32 -> 128 forward
-    took 30 ms against 16 direct. Session 41, the output transform as one matrix product:
-    against the reference, batched sampling 2.16-2.29x (was 1.11-1.19x), scoring 1.76-1.95x, the
-    train step 1.27-1.30x; with AVX-512 still slower than direct (32 -> 128: 80 against 69 ms
-    with the sampler's options) (bench/README.md)."""
-    return (on_cpu() and tuple(kernel) == (5, 5) and not cpu_has_avx512()
-            and (not differentiated or tiles <= WINOGRAD_MAX_TILES))
+def winograd_convolutions(kernel: tuple[int, ...], tiles: int) -> bool:
+    """Whether a convolution with this kernel size (kh, kw) and this many 4 x 4 output tiles
+    runs its forward pass through Winograd's F(4, 5) (`model.winograd`): the 5 x 5 ones of up
+    to `WINOGRAD_MAX_TILES` tiles, on CPUs without AVX-512. There the matrix products run at
+    half AVX-512's width and the 6.25x fewer products win; with AVX-512 the transforms' memory
+    traffic costs more than the products save. Intel Xeon with AVX-512 and AMX hidden from
+    CPUID (`bench/avx2_only.c`), session 40, alternating: the `paper` scorer at grid 128, T 25,
+    B 1 1.18-1.19x faster (3.55 -> 2.99 s, 3.86 -> 3.28 s), its train step as fast (13.80
+    against 14.02 s); with AVX-512 a lone 5 x 5, 32 -> 128 forward took 30 ms against 16
+    direct. Session 41, the output transform as one matrix product: against the reference,
+    batched sampling 2.16-2.29x (was 1.11-1.19x), scoring 1.76-1.95x, the train step
+    1.27-1.30x; with AVX-512 still slower than direct (32 -> 128: 80 against 69 ms with the
+    sampler's options) (bench/README.md)."""
+    return (on_cpu() and tuple(kernel) == (5, 5) and tiles <= WINOGRAD_MAX_TILES
+            and not cpu_has_avx512())
 
 
 # Runs of more steps than this compile the one-program train step in the background while

@@ -64,7 +64,7 @@ def test_kernels_of_even_or_mixed_sizes_are_refused():
 def winograd_on(monkeypatch):
     """The backend's choice as on a CPU without AVX-512 (whatever this one has)."""
     monkeypatch.setattr(network, "winograd_convolutions",
-                        lambda kernel, tiles, differentiated: tuple(kernel) == (5, 5))
+                        lambda kernel, tiles: tuple(kernel) == (5, 5))
 
 
 def test_the_network_convolution_through_winograd_keeps_values_and_direct_gradients(winograd_on):
@@ -92,27 +92,6 @@ def test_the_network_convolution_through_winograd_keeps_values_and_direct_gradie
         np.testing.assert_allclose(g, g0, rtol=1e-3, atol=1e-3 * float(jnp.abs(g0).max()))
 
 
-def test_a_differentiated_program_takes_winograd_only_up_to_the_backends_size(monkeypatch):
-    """Above the backend's size for differentiated programs, the value of `conv_sum` is
-    Winograd's where nothing differentiates it and the direct convolutions' under jax.grad
-    (bit for bit), with the direct gradients."""
-    monkeypatch.setattr(network, "winograd_convolutions",
-                        lambda kernel, tiles, differentiated: not differentiated or tiles <= 4)
-    rng = np.random.default_rng(2)
-    x = jnp.asarray(rng.normal(size=(1, 12, 12, 3)), jnp.float32)  # 9 tiles: above 4
-    w = jnp.asarray(rng.normal(size=(5, 5, 3, 4)), jnp.float32)
-    winograd_y = jax.jit(lambda x, w: winograd.conv_sum((x,), (w,)))(x, w)
-    direct_y, direct_vjp = jax.vjp(jax.jit(network._direct_conv), x, w)
-    plain = jax.jit(network.conv)(x, w)
-    np.testing.assert_array_equal(plain, winograd_y)
-    assert not np.array_equal(plain, direct_y)  # the two paths round differently here
-    y, vjp = jax.vjp(jax.jit(network.conv), x, w)
-    np.testing.assert_array_equal(y, direct_y)
-    g = jnp.asarray(rng.normal(size=y.shape), jnp.float32)
-    for a, b in zip(vjp(g), direct_vjp(g), strict=True):
-        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-6)
-
-
 def test_scores_through_winograd_match_the_direct_scores(winograd_on, tiny_train_cache):
     """The scorer with the 5 x 5 convolutions through Winograd scores real scenes as the
     direct convolutions do, to float32's rounding over a window of generation steps."""
@@ -125,7 +104,7 @@ def test_scores_through_winograd_match_the_direct_scores(winograd_on, tiny_train
     # Traced under the fixture's choice: Winograd.
     ours = jax.tree.map(np.asarray, jax.jit(lambda p, b: score_batch(p, b, CFG))(params, batch))
     with pytest.MonkeyPatch.context() as m:
-        m.setattr(network, "winograd_convolutions", lambda kernel, tiles, differentiated: False)
+        m.setattr(network, "winograd_convolutions", lambda kernel, tiles: False)
         direct = jax.tree.map(np.asarray,
                               jax.jit(lambda p, b: score_batch(p, b, CFG))(params, batch))
     assert ours.keys() == direct.keys()

@@ -128,24 +128,13 @@ def _direct_conv(x, w):
     return _conv(x, w)
 
 
-def _direct_sum(xs, ws):
-    return functools.reduce(jnp.add, [_direct_conv(x, w) for x, w in zip(xs, ws, strict=True)])
-
-
 @jax.custom_vjp
 def _winograd_conv_sum(xs, ws):
-    """Winograd's sum of convolutions where nothing differentiates it (the scorer, the
-    sampler); under differentiation, `_winograd_conv_sum_fwd`."""
     return winograd.conv_sum(xs, ws)
 
 
 def _winograd_conv_sum_fwd(xs, ws):
-    """The forward pass of a differentiated program (the train step): Winograd's where the
-    backend takes it for a differentiated program of this size, else the direct one."""
-    tiles = winograd.tiles(xs[0].shape)
-    if winograd_convolutions(ws[0].shape[:2], tiles, differentiated=True):
-        return winograd.conv_sum(xs, ws), (xs, ws)
-    return _direct_sum(xs, ws), (xs, ws)
+    return winograd.conv_sum(xs, ws), (xs, ws)
 
 
 def _winograd_conv_sum_bwd(res, g):
@@ -161,15 +150,13 @@ _winograd_conv_sum.defvjp(_winograd_conv_sum_fwd, _winograd_conv_sum_bwd)
 def conv_sum(terms, b=None):
     """sum of conv(x, w) over terms [(x, w), ...] (see `conv`), plus b. Where the backend
     takes Winograd's algorithm for these kernels (`backend.winograd_convolutions`), the sum is
-    one Winograd convolution over the inputs' joined channels (gradients: the direct ones;
-    a differentiated program's forward pass takes it only up to the backend's size)."""
+    one Winograd convolution over the inputs' joined channels (gradients: the direct ones)."""
     xs, ws = (tuple(t) for t in zip(*terms, strict=True))
-    if winograd_convolutions(ws[0].shape[:2], winograd.tiles(xs[0].shape),
-                             differentiated=False) and all(
+    if winograd_convolutions(ws[0].shape[:2], winograd.tiles(xs[0].shape)) and all(
             w.shape[:2] == ws[0].shape[:2] for w in ws):
         y = _winograd_conv_sum(xs, ws)
     else:
-        y = _direct_sum(xs, ws)
+        y = functools.reduce(jnp.add, [_direct_conv(x, w) for x, w in terms])
     return y if b is None else y + b
 
 
