@@ -99,9 +99,11 @@ def ours(kind: str, config: str, grid: int, model: str | None) -> dict:
         state = init_state(cfg)
         batch = jax.device_put(synthetic_batch(cfg, cfg.batch_size, cfg.max_actors))
         t = process_age_s()
+        out["init_s"] = t - t_import
         step = first_train_step(cfg, state, batch, None, steps=1000)
         out["compile_s"] = process_age_s() - t
         jax.block_until_ready(step(state, batch))
+        out["step_s"] = process_age_s() - t - out["compile_s"]
         out["batch"] = cfg.batch_size
     elif kind == "score":
         b = 1 if cfg.name == "paper" else BATCH

@@ -118,20 +118,34 @@ def explicit_conv_gradients() -> bool:
 FAST_COMPILE = {"xla_cpu_opt_preset": "CPU_OPT_PRESET_FAST_COMPILE"}
 
 
-def _backend_level(level: int) -> dict:
-    """XLA:CPU's backend optimisation level as a compiler option, or nothing where XLA_FLAGS
-    sets the level (the test suite's 0, or a user's choice), which the option would override."""
-    if "--xla_backend_optimization_level" in os.environ.get("XLA_FLAGS", ""):
+def _unless_flagged(option: str, value) -> dict:
+    """`{option: value}` as a compiler option, or nothing where XLA_FLAGS sets that option
+    (the test suite's level and emitters, or a user's choice), which the option would
+    override."""
+    if f"--{option}" in os.environ.get("XLA_FLAGS", ""):
         return {}
-    return {"xla_backend_optimization_level": level}
+    return {option: value}
+
+
+def _backend_level(level: int) -> dict:
+    """XLA:CPU's backend optimisation level as a compiler option (`_unless_flagged`)."""
+    return _unless_flagged("xla_backend_optimization_level", level)
+
+
+def _quickest_compile() -> dict:
+    """XLA:CPU's quickest compile for programs that run briefly: backend optimisation level
+    0 with its loop emitters instead of its fusion emitters (the test suite's pair,
+    conftest.py), each `_unless_flagged`."""
+    return {**_backend_level(0), **_unless_flagged("xla_cpu_use_fusion_emitters", False)}
 
 
 def init_compiler_options() -> dict | None:
-    """XLA compiler options for drawing initial parameters: on XLA:CPU no backend
-    optimisation (the initialisers' random-number kernels run once, and compiled at XLA's
-    default level they took 4.6 of the 5 s `tiny`'s initialisation took; 1.2 s at level 0),
-    None on other backends."""
-    return _backend_level(0) if on_cpu() else None
+    """XLA compiler options for drawing initial parameters: on XLA:CPU `_quickest_compile`
+    (the initialisers' random-number kernels run once, and compiled at XLA's default level
+    they took 4.6 of the 5 s `tiny`'s initialisation took; 1.2 s at level 0 on a Zen 4; on
+    a slow Xeon, session 43, `init_state`'s program 2.7-3.0 s at level 0, 2.0 s with the
+    loop emitters), None on other backends."""
+    return _quickest_compile() if on_cpu() else None
 
 
 def compiled_init(init: Callable[[Any], Any], key) -> Any:
@@ -261,6 +275,21 @@ def train_compiler_options() -> dict | None:
         return None
     eigen = EIGEN_CONVOLUTIONS if train_eigen_convolutions() else {}
     return {**FAST_COMPILE, **_backend_level(1), **eigen}
+
+
+def quick_train_compiler_options() -> dict | None:
+    """XLA compiler options for train-step programs that run for milliseconds, or only until
+    a faster program takes over: `train_compiler_options` with `_quickest_compile`; None on
+    other backends. The split step's prologue and epilogue (the
+    optimizer's update) always, its chunk programs where the one-program step takes over
+    after the first step (`train.step.QuickStartTrainStep`). Slow Intel Xeon (family 6
+    model 167, AVX-512 and AMX), 2 cores, session 43, each program compiled alone: `tiny`'s
+    prologue 2.4 -> 0.5 s and epilogue 3.3 -> 1.2 s, both still running in 10-30 ms; its
+    forward and backward chunks 6.7 + 4.8 -> 1.8 + 1.6 s, but a split step of 2.0 s then
+    takes 4.1 s (`cpu`: 10.2 + 7.3 -> 2.6 + 2.5 s; 5.9 -> 12.5 s a step). The loop emitters
+    at level 1 compiled `tiny`'s chunks a little faster and `cpu`'s slower, and the
+    one-program step 1.7x slower, running slower too (bench/README.md)."""
+    return {**train_compiler_options(), **_quickest_compile()} if on_cpu() else None
 
 
 def sampling_compiler_options() -> dict | None:

@@ -214,12 +214,14 @@ def test_split_train_step_equals_the_one_program_step(tiny_train_cache, small_sc
     statistics and gradient norm (a gradient missing a part, e.g. the map convolution's or a
     chunk's carry, changes it), and the same parameters wherever the gradient is not ~0
     (Adam's first steps move a parameter by about the learning rate whatever its gradient's
-    size)."""
+    size). The split step is compiled from shapes alone, as `QuickStartTrainStep` compiles
+    it in the background."""
     from scenegen_jax.train.step import SplitTrainStep
 
     cfg = CFG.replace(rotate_augment=True, bptt_window=8)
     batch = jax.device_put(_batch(tiny_train_cache, small_scenes))
-    split, fused = SplitTrainStep(cfg, init_state(cfg), batch), make_train_step(cfg)
+    shapes = jax.eval_shape(lambda: (init_state(cfg), batch))
+    split, fused = SplitTrainStep(cfg, *shapes, quick=False), make_train_step(cfg)
     a, b = init_state(cfg), init_state(cfg)  # each step donates its state
     for _ in range(2):
         a, sa = split(a, batch)
@@ -234,38 +236,52 @@ def test_split_train_step_equals_the_one_program_step(tiny_train_cache, small_sc
 
 
 def test_quick_start_swaps_in_the_one_program_step_once_compiled(monkeypatch):
-    """`QuickStartTrainStep` runs the split step until the background compile of the
-    one-program step, started after the first step, is done, then that one; runs of at most
-    QUICK_START_STEPS steps never start the background compile; `close` waits for it.
-    (Stand-ins for both steps: the logic, not the compiler.)"""
+    """`QuickStartTrainStep` runs the quick split step until the background compiles, started
+    after the first step, of the split step with the train step's options and then of the
+    one-program step are done, each in turn; runs of at most QUICK_START_STEPS steps keep
+    the split step with the train step's options and never compile in the background;
+    `close` waits for the background. (Stand-ins for the steps: the logic, not the
+    compiler.)"""
     import threading
 
     from scenegen_jax.backend import QUICK_START_STEPS
     from scenegen_jax.train import step as step_module
 
-    release, started = threading.Event(), threading.Event()
+    gates = {False: threading.Event(), "fused": threading.Event()}
+    started, calls = threading.Event(), []
+
+    def split(cfg, state, batch, quick):
+        calls.append(quick)
+        if not quick and started.is_set():  # the background's: waits for its gate
+            gates[False].wait(timeout=30)
+        return lambda state, batch: ("quick" if quick else "split", state)
 
     def compile_fused(*args):
-        started.set()
-        release.wait(timeout=30)
+        calls.append("fused")
+        gates["fused"].wait(timeout=30)
         return lambda state, batch: ("fused", state)
 
-    monkeypatch.setattr(step_module, "SplitTrainStep",
-                        lambda *args: (lambda state, batch: ("split", state)))
+    monkeypatch.setattr(step_module, "SplitTrainStep", split)
     monkeypatch.setattr(step_module, "compile_train_step", compile_fused)
     state, batch = (jnp.zeros(2), jnp.ones(3)), jnp.ones(4)
     short = step_module.QuickStartTrainStep(CFG, state, batch, None, QUICK_START_STEPS)
     assert short(state, batch)[0] == "split"
     short.close()
     assert short(state, batch)[0] == "split"  # no background compile at all
+    started.set()
     quick = step_module.QuickStartTrainStep(CFG, state, batch, None, QUICK_START_STEPS + 1)
-    assert not started.is_set()  # not beside the first step
-    assert quick(state, batch)[0] == "split"
-    assert started.wait(timeout=30)
-    assert quick(state, batch)[0] == "split"  # still compiling
-    release.set()
+    assert calls == [False, True]  # nothing compiles beside the first step
+    assert quick(state, batch)[0] == "quick"
+    assert quick(state, batch)[0] == "quick"  # the split step still compiling
+    gates[False].set()
+    deadline = time.time() + 30
+    while quick(state, batch)[0] == "quick" and time.time() < deadline:
+        time.sleep(0.01)
+    assert quick(state, batch)[0] == "split"  # the one-program step still compiling
+    gates["fused"].set()
     quick.close()
     assert quick(state, batch)[0] == "fused"
+    assert calls == [False, True, False, "fused"]
 
 
 def test_train_step_compiles_once(tiny_train_cache):

@@ -19,6 +19,7 @@ from scenegen_jax.backend import (
     QUICK_START_STEPS,
     compiled_init,
     quick_start_training,
+    quick_train_compiler_options,
     release_freed_memory,
     train_compiler_options,
 )
@@ -243,9 +244,12 @@ class SplitTrainStep:
     unrolled (XLA:CPU), so they compile in a third of the one-program step's time; a step
     runs a little slower (no zero-state shortcut in the first window, no overlap between
     windows), so `QuickStartTrainStep` swaps the one-program step in once it is compiled.
-    The programs compile side by side; the state argument is donated."""
+    The programs compile side by side, the prologue and the epilogue (milliseconds a step)
+    with `quick_train_compiler_options`, the chunks with `train_compiler_options`, or with
+    the quick options too where `quick` (the chunks then compile 3-4x faster and run 2x
+    slower: for steps until a faster program takes over). The state argument is donated."""
 
-    def __init__(self, cfg: Config, state: TrainState, batch: Batch):
+    def __init__(self, cfg: Config, state: TrainState, batch: Batch, quick: bool = False):
         scale = 1.0 / batch.actors.cls.shape[0]
         self._starts = [range(w * cfg.bptt_window, (w + 1) * cfg.bptt_window,
                               chunk_steps(cfg)) for w in range(num_windows(cfg))]
@@ -267,7 +271,9 @@ class SplitTrainStep:
             unrolled, grads = grads_epilogue(map_vjp, scenes, (None, g_params, g_map), terms)
             return _apply_grads(state, cfg, unrolled, grads, 1, None)
 
-        jit = functools.partial(jax.jit, compiler_options=train_compiler_options())
+        light = functools.partial(jax.jit, compiler_options=quick_train_compiler_options())
+        jit = light if quick else functools.partial(jax.jit,
+                                                    compiler_options=train_compiler_options())
         with concurrent.futures.ThreadPoolExecutor(4) as pool:
             compiled = []
 
@@ -276,14 +282,14 @@ class SplitTrainStep:
                 return lowered.out_info
 
             maps, map_gates, scenes, carry, g_params, g_map, _ = compile_next(
-                jit(prologue).lower(state, batch))
+                light(prologue).lower(state, batch))
             start = jax.ShapeDtypeStruct((), jnp.int32)
             _, chunk_terms, vjp = compile_next(
                 jit(forward).lower(state.params, map_gates, scenes, carry, start))
             compile_next(jit(chunk_backward, donate_argnums=(2, 3)).lower(vjp, carry, g_params,
                                                                            g_map))
             terms = [chunk_terms] * sum(map(len, self._starts))
-            compile_next(jit(epilogue, donate_argnums=0).lower(state, maps, scenes, g_params,
+            compile_next(light(epilogue, donate_argnums=0).lower(state, maps, scenes, g_params,
                                                                g_map, terms))
             self._prologue, self._forward, self._backward, self._epilogue = (
                 c.result() for c in compiled)
@@ -306,12 +312,14 @@ class SplitTrainStep:
 
 class QuickStartTrainStep:
     """A train step that starts on `SplitTrainStep` and, for runs of more than
-    `backend.QUICK_START_STEPS` steps, compiles the one-program step (`compile_train_step`)
-    on a background thread once the first step is done (beside it, the compile slowed that
-    step by 1.8 s of `tiny`'s 15), and uses it from the first step after it is ready. The
-    first step comes after the split programs' compile, a third to a half of the one-program
-    step's on XLA:CPU (bench/README.md). `close` waits for a background compile still
-    running."""
+    `backend.QUICK_START_STEPS` steps, starts on its quick form (chunks compiled with the
+    quick options, a tenth of the one-program step's compile on XLA:CPU and 2x slower
+    steps), then compiles on a background thread, once the first step is done (beside it,
+    the compile slowed that step by 1.8 s of `tiny`'s 15), the split step with the train
+    step's options and after it the one-program step (`compile_train_step`); each step runs
+    the fastest of them that is ready. Shorter runs keep the split step with the train
+    step's options throughout (bench/README.md). `close` waits for a background compile
+    still running."""
 
     def __init__(self, cfg: Config, state: TrainState, batch: Batch, mesh: Mesh | None,
                  steps: int):
@@ -319,19 +327,24 @@ class QuickStartTrainStep:
         shapes = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype,
                                                              sharding=x.sharding),
                               (state, batch))
-        self._split = SplitTrainStep(cfg, state, batch)
-        self._pool = self._fused = None
-        self._pending = (cfg, *shapes, mesh) if steps > QUICK_START_STEPS else None
+        quick = steps > QUICK_START_STEPS
+        self._split = SplitTrainStep(cfg, state, batch, quick)
+        # Compiled one after the other, each faster than the last.
+        self._pending = [functools.partial(SplitTrainStep, cfg, *shapes, False),
+                         functools.partial(compile_train_step, cfg, *shapes, mesh)
+                         ] if quick else []
+        self._pool, self._compiled = None, []
 
     def __call__(self, state: TrainState, batch: Batch) -> tuple[TrainState, dict]:
-        if self._fused is not None and self._fused.done():
-            return self._fused.result()(state, batch)
+        for step in reversed(self._compiled):
+            if step.done():
+                return step.result()(state, batch)
         out = self._split(state, batch)
-        if self._pending is not None:
+        if self._pending:
             jax.block_until_ready(out)
             self._pool = concurrent.futures.ThreadPoolExecutor(1)
-            self._fused = self._pool.submit(compile_train_step, *self._pending)
-            self._pending = None
+            self._compiled = [self._pool.submit(compile) for compile in self._pending]
+            self._pending = []
         return out
 
     def close(self) -> None:
