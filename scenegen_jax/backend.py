@@ -280,9 +280,9 @@ def train_compiler_options() -> dict | None:
 def quick_train_compiler_options() -> dict | None:
     """XLA compiler options for train-step programs that run for milliseconds, or only until
     a faster program takes over: `train_compiler_options` with `_quickest_compile`; None on
-    other backends. The split step's prologue and epilogue (the
-    optimizer's update) always, its chunk programs where the one-program step takes over
-    after the first step (`train.step.QuickStartTrainStep`). Slow Intel Xeon (family 6
+    other backends. The split step's prologue and epilogue (the optimizer's update) always,
+    its chunk programs where faster programs take over after the first step
+    (`train.step.QuickStartTrainStep`). Slow Intel Xeon (family 6
     model 167, AVX-512 and AMX), 2 cores, session 43, each program compiled alone: `tiny`'s
     prologue 2.4 -> 0.5 s and epilogue 3.3 -> 1.2 s, both still running in 10-30 ms; its
     forward and backward chunks 6.7 + 4.8 -> 1.8 + 1.6 s, but a split step of 2.0 s then

@@ -248,11 +248,11 @@ def test_quick_start_swaps_in_the_one_program_step_once_compiled(monkeypatch):
     from scenegen_jax.train import step as step_module
 
     gates = {False: threading.Event(), "fused": threading.Event()}
-    started, calls = threading.Event(), []
+    background, calls = threading.Event(), []
 
     def split(cfg, state, batch, quick):
         calls.append(quick)
-        if not quick and started.is_set():  # the background's: waits for its gate
+        if not quick and background.is_set():  # the background's: waits for its gate
             gates[False].wait(timeout=30)
         return lambda state, batch: ("quick" if quick else "split", state)
 
@@ -268,7 +268,7 @@ def test_quick_start_swaps_in_the_one_program_step_once_compiled(monkeypatch):
     assert short(state, batch)[0] == "split"
     short.close()
     assert short(state, batch)[0] == "split"  # no background compile at all
-    started.set()
+    background.set()
     quick = step_module.QuickStartTrainStep(CFG, state, batch, None, QUICK_START_STEPS + 1)
     assert calls == [False, True]  # nothing compiles beside the first step
     assert quick(state, batch)[0] == "quick"
