@@ -14,8 +14,8 @@
 # (1960 steps was what a 100-step probe said would fit the lease's minutes; the second call
 # starts a fresh optimizer from the first call's last step, `--init-from`.) Each phase warms
 # up over 50 steps and then decays to 0 by a cosine over the rest.
-# The lent machine has jax, flax, optax and orbax but not distrax (with tfp-nightly, gast,
-# decorator, dm-tree) or shapely: session 36 carried their cp312 wheels and the three caches
+# The lent machine has jax, flax, optax and orbax but not shapely (nor distrax, which the
+# package needed until session 44): session 36 carried their cp312 wheels and the three caches
 # (tar.gz, 23 MB; the data stay out of the repository) in a folder that .git/info/exclude
 # ignores, installed the wheels with `pip install --no-index --no-deps --target`, and ran
 # this script with PYTHONPATH and CACHES set (PY=python3, the machine's Python).

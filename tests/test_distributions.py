@@ -377,6 +377,24 @@ def test_heading_sampler_matches_density_and_shifted_mean_fails():
     assert stats.kstest(draw(D.sample_heading, wrong, N_DRAWS, 2), cdf).pvalue < 1e-4
 
 
+@pytest.mark.parametrize("kappa,wrong", [(0.005, 0.5), (0.3, 0.9), (4.0, 6.0), (300.0, 450.0)])
+def test_vonmises_from_uniforms_matches_scipy_and_a_wrong_concentration_fails(kappa, wrong):
+    """The block Best-Fisher draw against scipy's von Mises CDF, from below the small-kappa
+    cut (2e-2: the envelope's constant is 1 / kappa there) to a concentration of 300; the
+    same draws tested against another concentration are rejected."""
+    from scenegen_jax.distributions.mixtures import VONMISES_UNIFORMS, vonmises_from_uniforms
+
+    loc = 2.5
+    direction = jnp.array([np.cos(loc), np.sin(loc)], jnp.float32)
+    keys = jax.random.split(jax.random.key(int(kappa * 1000)), N_DRAWS)
+    draws = jax.jit(jax.vmap(lambda k: vonmises_from_uniforms(
+        D.uniforms(k, (VONMISES_UNIFORMS,)), direction, jnp.log(jnp.float32(kappa)))))(keys)
+    offset = np.asarray(draws, np.float64) - loc
+    assert np.all(np.abs(offset) <= np.pi + 1e-5)
+    assert stats.kstest(offset, stats.vonmises(kappa).cdf).pvalue > 0.01
+    assert stats.kstest(offset, stats.vonmises(wrong).cdf).pvalue < 1e-4
+
+
 def velocity_test_pvalues(v, raw, heading, zero_speed):
     p = np_velocity(raw.astype(np.float64), K)
     speed = np.hypot(v[:, 0], v[:, 1])
