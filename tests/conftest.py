@@ -103,3 +103,48 @@ def tiny_train_cache(tmp_path_factory, data_root):
     drops = collections.Counter()
     write_cache(read_split(data_root, "train", drops, stride=8), out, get_config("tiny"), drops)
     return load_cache(out)
+
+
+def _run_dir(request, tmp_path_factory, name: str):
+    """A folder shared by this run's xdist workers (beside their own temporary folders,
+    named by the run's id), or this process's own without xdist."""
+    worker = getattr(request.config, "workerinput", None)
+    if worker is None:
+        return tmp_path_factory.mktemp(name)
+    path = tmp_path_factory.getbasetemp().parent / f"{name}-{worker['testrunuid']}"
+    path.mkdir(exist_ok=True)
+    return path
+
+
+@pytest.fixture(scope="session")
+def overfit_run(request, tmp_path_factory, tiny_train_cache):
+    """(losses of every step, final parameters) of 100 steps of the small config's
+    one-program train step on its two small scenes, from `init_state`: test_train checks
+    that the loss falls, test_scoring scores with the parameters. Run once per suite: the
+    first worker to ask trains under a lock and writes the result (msgpack and JSON); the
+    others read it."""
+    import fcntl
+    import json
+
+    import jax
+    from flax import serialization
+    from small import CFG, two_small_scenes
+
+    from scenegen_jax.likelihood.batch import gather_batch
+    from scenegen_jax.train.step import init_state, make_train_step
+
+    path = _run_dir(request, tmp_path_factory, "overfit-run")
+    with open(path / "lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (path / "losses.json").exists():
+            batch = jax.device_put(
+                gather_batch(tiny_train_cache, two_small_scenes(tiny_train_cache), CFG))
+            state, step, losses = init_state(CFG), make_train_step(CFG), []
+            for _ in range(100):
+                state, stats = step(state, batch)
+                losses.append(float(stats["loss"]))
+            (path / "params.msgpack").write_bytes(
+                serialization.msgpack_serialize(jax.device_get(state.params)))
+            (path / "losses.json").write_text(json.dumps(losses))  # last: marks it complete
+    params = serialization.msgpack_restore((path / "params.msgpack").read_bytes())
+    return json.loads((path / "losses.json").read_text()), params

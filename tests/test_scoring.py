@@ -18,7 +18,6 @@ from scenegen_jax.eval.nll import score_batch, score_cache, worst_scenes
 from scenegen_jax.likelihood.batch import Batch, gather_batch
 from scenegen_jax.raster.transform import crop_map
 from scenegen_jax.scene import VEHICLE, in_region, pixel_centers
-from scenegen_jax.train.step import init_state, make_train_step
 
 
 def off_road_point(drivable: np.ndarray, cfg) -> np.ndarray:
@@ -45,13 +44,10 @@ def scenes(tiny_train_cache):
 
 
 @pytest.fixture(scope="module")
-def fitted(tiny_train_cache, scenes):
-    """Params fitted to the two scenes (100 steps): they have learnt where its actors are."""
-    batch = jax.device_put(gather_batch(tiny_train_cache, scenes, CFG))
-    state, step = init_state(CFG), make_train_step(CFG)
-    for _ in range(100):
-        state, _ = step(state, batch)
-    return state.params
+def fitted(overfit_run):
+    """Params fitted to the two scenes (100 steps, conftest.py): they have learnt where its
+    actors are."""
+    return jax.tree.map(jnp.asarray, overfit_run[1])
 
 
 def test_same_model_scored_twice_is_identical(tiny_train_cache, fitted):
