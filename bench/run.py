@@ -198,7 +198,7 @@ def run_case(args) -> dict:
     out = {"what": args.kind, "ours": True, "config": cfg.name, "grid": cfg.grid_size,
            "hidden": cfg.hidden, "batch": args.batch, "map_ch": len(cfg.map_channels)}
     if args.kind != "sample" and backend.compiled_step_loop(args.kind == "train"):
-        out.update(step_loop="compiled", step_loop_unroll=backend.step_loop_unroll())
+        out.update(step_loop="compiled", step_loop_unroll=backend.STEP_LOOP_UNROLL)
     elif args.kind != "sample":
         out["step_loop"] = "unrolled"
     state = init_state(cfg)

@@ -36,9 +36,9 @@ import jax
 import numpy as np
 from jax.sharding import Mesh
 
-# Steps per iteration of the compiled step loop (`lax.scan`'s unroll) on accelerators. On an
-# H100 (paper preset, grid 320, T 25) 4 gave a train step within 1.4 % of the unrolled
-# window's, compiled in 26 s instead of 202 s; 1 gave 6.5 % slower in 20 s (bench/README.md).
+# Steps per iteration of the compiled step loop (`lax.scan`'s unroll). On an H100 (paper
+# preset, grid 320, T 25) 4 gave a train step within 1.4 % of the unrolled window's, compiled
+# in 26 s instead of 202 s; 1 gave 6.5 % slower in 20 s (bench/README.md).
 STEP_LOOP_UNROLL = 4
 
 
@@ -99,15 +99,6 @@ def compiled_step_loop(differentiated: bool = True) -> bool:
     against 6.5-7.0 s; the shipped `cpu` model's first batch of 8 traced in 0.9 against 2.5 s
     and compiled in 3.1 against 4.7 s (session 34; bench/README.md)."""
     return not (on_cpu() and differentiated)
-
-
-def step_loop_unroll() -> int:
-    """Steps per iteration of the compiled step loop: `STEP_LOOP_UNROLL` on accelerators, 1
-    on XLA:CPU, where the loop is the scorer's (no gradient, `compiled_step_loop`) and one
-    step an iteration compiles sooner and runs as fast: the shipped model's first scoring
-    batch 13.6-14.6 -> 10.9-11.9 s, grid 128, T 25, B 8 as fast (14.8-15.6 s against
-    15.0-16.2 s; AVX2 16.0 against 16.3 s) (session 45, bench/README.md)."""
-    return 1 if on_cpu() else STEP_LOOP_UNROLL
 
 
 def explicit_conv_gradients() -> bool:

@@ -69,8 +69,6 @@ def test_fast_unroll_equals_plain_reference(reference_case, chunk_bytes, step_lo
     if chunk_bytes is not None:
         monkeypatch.setattr(unroll, "HEAD_CHUNK_BYTES", chunk_bytes)
     monkeypatch.setattr(backend, "compiled_step_loop", lambda differentiated=True: step_loop)
-    # The accelerators' steps per iteration (XLA:CPU's scorer runs one).
-    monkeypatch.setattr(backend, "step_loop_unroll", lambda: backend.STEP_LOOP_UNROLL)
     cfg, params, maps, scene, ref, g_ref = reference_case
     fast, valid, _ = jax.jit(lambda p: unroll_terms(p, cfg, maps, scene, None))(params)
     steps = ref["class"].shape[1]
@@ -116,6 +114,7 @@ def test_remat_gives_the_same_loss_and_gradients(tiny_train_cache, small_scenes,
 
     monkeypatch.setattr(unroll, "HEAD_CHUNK_BYTES", 3 * 2 * 32 * 32 * 8 * 4)
     monkeypatch.setattr(backend, "compiled_step_loop", lambda differentiated=True: step_loop)
+    monkeypatch.setattr(backend, "STEP_LOOP_UNROLL", 1)  # the same loop, a smaller body
     maps, scene = _crop(tiny_train_cache, small_scenes, [0.0, 1.0], CFG)
     params = random_params(CFG, jax.random.key(2))
 

@@ -308,7 +308,7 @@ def _unrolled_steps(net, params, map_gates, state, raster, win: Actors, cls, bin
 def _scanned_steps(net, params, map_gates, state, raster, win: Actors, cls, bins, prev_bins,
                    cfg):
     """`_unrolled_steps` as a `lax.scan` over the window's steps 1..W-1 (step 0, which may
-    start from the zero state, runs before it): `backend.step_loop_unroll()` steps are compiled,
+    start from the zero state, runs before it): `backend.STEP_LOOP_UNROLL` steps are compiled,
     whatever the window.
     Each iteration draws the previous step's actor, updates the actor gates locally, steps
     the ConvLSTM and runs the backbone and heads of that one step (recomputed in the
@@ -340,7 +340,7 @@ def _scanned_steps(net, params, map_gates, state, raster, win: Actors, cls, bins
     (state, _, raster), rest = jax.lax.scan(
         step, (state, gates, raster),
         (drawn, steps_major[1][1:], steps_major[2][1:], steps_major[3][1:]),
-        unroll=backend.step_loop_unroll(),
+        unroll=backend.STEP_LOOP_UNROLL,
     )
     last = jax.tree.map(lambda x: x[-1], steps_major[0])
     raster_end = draw(raster, last, jnp.zeros((b,), bool))
