@@ -566,6 +566,47 @@ def test_initial_parameters_are_the_same_compiled_alone_or_inside_a_trace():
         np.testing.assert_allclose(a, t, rtol=1e-6, atol=1e-7)
 
 
+def test_initial_weights_follow_flax_initialisers_and_a_wrong_scale_fails():
+    """The weights drawn from `InitialDraws` (one PRNG call for all of them) follow the
+    distributions of flax's initialisers, checked against scipy: lecun_normal (a normal
+    truncated to two standard deviations, scaled to variance 1 / fan_in; the ConvLSTM,
+    backbone, location and class-MLP weights and the first attribute layers, per copy where
+    stacked by class) and variance_scaling(0.1, "fan_in", "normal") (the last attribute
+    layers). The same draws 10 % wider (lecun) or 50 % wider (the small normal sample) fail;
+    the per-class copies differ; zeros, ones and the fixed biases stay as they were."""
+    from scipy import stats
+
+    from scenegen_jax.model.network import TRUNCATED_STD, init_params
+
+    params = flatten_dict(jax.device_get(init_params(CFG, jax.random.key(7))), sep="/")
+    lecun, normal = [], []
+    for name, w in params.items():
+        w = np.asarray(w, np.float64)
+        if name.endswith(("_b", "bias", "_gn_s", "_gn_b")) or name == "loc2_w":
+            continue
+        head = name.startswith(("box", "heading", "velocity"))  # the attribute MLPs
+        stacked = head or name.startswith("loc")
+        one = w.shape[1:] if stacked else w.shape
+        fan_in = np.prod(one) // one[-1]
+        if stacked:
+            assert not np.allclose(w[0], w[1]), name  # independent copies per class
+        if head and name.endswith("2_w"):
+            normal.append(w.ravel() / np.sqrt(0.1 / fan_in))
+        else:
+            lecun.append(w.ravel() * np.sqrt(fan_in))
+    lecun, normal = np.concatenate(lecun), np.concatenate(normal)
+    assert len(lecun) > 29_000 and len(normal) > 1_000
+    truncated = stats.truncnorm(-2, 2, scale=1 / TRUNCATED_STD)
+    assert np.abs(lecun).max() <= 2 / TRUNCATED_STD + 1e-5
+    assert stats.kstest(lecun, truncated.cdf).pvalue > 1e-3
+    assert stats.kstest(lecun * 1.1, truncated.cdf).pvalue < 1e-6
+    assert abs(np.std(lecun) - 1.0) < 0.02  # variance 1 / fan_in, as flax's
+    assert stats.kstest(normal, stats.norm.cdf).pvalue > 1e-3
+    assert stats.kstest(normal * 1.5, stats.norm.cdf).pvalue < 1e-6
+    assert not np.any(params["loc2_w"]) and not np.any(params["backbone0_b"])
+    np.testing.assert_array_equal(params["backbone0_gn_s"], 1.0)
+
+
 def test_a_fresh_state_holds_the_parameters_of_its_seed_and_zero_optimizer_moments(monkeypatch):
     """`init_state` compiles parameters and optimizer state as one program: its parameters
     are `init_params` of the first half of the seed's key split, its step 0, Adam's moments

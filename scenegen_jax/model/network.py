@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import errors
+from jax.scipy import special
 
 from scenegen_jax.backend import (
     compiled_init,
@@ -28,6 +29,7 @@ from scenegen_jax.backend import (
 )
 from scenegen_jax.config import Config
 from scenegen_jax.distributions import params as P
+from scenegen_jax.distributions import uniforms
 from scenegen_jax.model import winograd
 from scenegen_jax.raster.actors import ACTOR_CHANNELS, window_origin, window_size
 from scenegen_jax.raster.map import NEAREST_LANE_CHANNELS, ORIENTATION_CHANNELS
@@ -232,13 +234,67 @@ def _mlp(x, ws, bs, cls):
     return x
 
 
-def _stacked(init, n: int):
-    """Initialiser for n independently initialised copies stacked on a leading axis."""
+# Values per PRNG call of the initial parameters (`InitialDraws`).
+INIT_BLOCK = 1 << 20
 
-    def f(key, shape, dtype=jnp.float32):
-        return jax.vmap(lambda k: init(k, shape[1:], dtype))(jax.random.split(key, n))
 
-    return f
+class InitialDraws:
+    """The random initial parameters' values, from one PRNG call per `INIT_BLOCK` values of
+    each distribution, handed out in the order the parameters are created. Each `jax.random`
+    call compiles its own kernels: a call per parameter (flax's initialisers) made `tiny`'s
+    initialisation program compile in 2.7 s on a slow Xeon (bench/README.md, session 45).
+    So a parameter's values depend on the seed and on the parameters created before it (the
+    config), not on its name alone; their distributions are flax's (`variance_scaling`)."""
+
+    def __init__(self, key: jax.Array | None):
+        self._key = key  # None where the network reads stored parameters (see `_standard`)
+        self._blocks = 0
+        self._left: dict[str, jnp.ndarray] = {}
+
+    def _standard(self, distribution: str, n: int) -> jnp.ndarray:
+        """n standard draws: "normal", or "truncated_normal" (within [-2, 2]). Zeros without
+        a key: `apply` runs no initialiser but flax's `nn.Dense`, which traces its kernel's
+        for the shape alone (`jax.eval_shape`)."""
+        if self._key is None:
+            return jnp.zeros((n,))
+        left = self._left.get(distribution, jnp.zeros((0,)))
+        if n > left.shape[0]:  # a new block (what is left of the last one is dropped)
+            u = uniforms(jax.random.fold_in(self._key, self._blocks), (max(n, INIT_BLOCK),))
+            self._blocks += 1
+            if distribution == "truncated_normal":
+                lo = special.ndtr(-2.0)
+                left = jnp.clip(special.ndtri(lo + (1.0 - 2.0 * lo) * u), -2.0, 2.0)
+            elif distribution == "normal":
+                left = special.ndtri(u)
+            else:
+                raise ValueError(f"initial draws: unknown distribution {distribution!r}")
+        self._left[distribution] = left[n:]
+        return left[:n]
+
+    def variance_scaling(self, scale: float, distribution: str, stacked: bool = False):
+        """`jax.nn.initializers.variance_scaling(scale, "fan_in", distribution)` ("normal" or
+        "truncated_normal") drawn from these values; with `stacked`, independent copies along
+        the leading axis (fans from the rest)."""
+
+        def init(key, shape, dtype=jnp.float32):
+            del key  # every value comes from the draws
+            one = shape[1:] if stacked else shape
+            fan_in = int(np.prod(one)) // one[-1]  # receptive field x input channels
+            std = np.sqrt(scale / fan_in)
+            if distribution == "truncated_normal":
+                std /= TRUNCATED_STD
+            z = self._standard(distribution, int(np.prod(shape)))
+            return (z * std).reshape(shape).astype(dtype)
+
+        return init
+
+    def lecun_normal(self, stacked: bool = False):
+        """`jax.nn.initializers.lecun_normal()` (flax's default for weights)."""
+        return self.variance_scaling(1.0, "truncated_normal", stacked)
+
+
+# The standard deviation of a standard normal truncated to [-2, 2] (jax.nn.initializers).
+TRUNCATED_STD = 0.87962566103423978
 
 
 def lstm_gates_reference(gates, c):
@@ -297,7 +353,10 @@ class SceneGenNet(nn.Module):
         cfg = self.cfg
         h = cfg.hidden
         cm = len(cfg.map_channels)
-        conv_init = nn.initializers.lecun_normal()
+        # A key only where the parameters are created (`apply` reads them).
+        draws = InitialDraws(self.make_rng("params") if self.is_initializing() else None)
+        conv_init = draws.lecun_normal()
+        stacked_conv_init = draws.lecun_normal(stacked=True)
         zeros = nn.initializers.zeros
         ones = nn.initializers.ones
 
@@ -333,14 +392,14 @@ class SceneGenNet(nn.Module):
             self._param(f"backbone{i}_gn_b", zeros, (h,)) for i in range(cfg.backbone_layers)
         ]
         self.class_mlp = [
-            nn.Dense(h, name="class_mlp0"),
-            nn.Dense(h, name="class_mlp1"),
-            nn.Dense(NUM_CLASSES + 1, name="class_mlp2"),
+            nn.Dense(h, kernel_init=conv_init, name="class_mlp0"),
+            nn.Dense(h, kernel_init=conv_init, name="class_mlp1"),
+            nn.Dense(NUM_CLASSES + 1, kernel_init=conv_init, name="class_mlp2"),
         ]
         n = NUM_CLASSES
         self.loc_w = [
-            self._param("loc0_w", _stacked(conv_init, n), (n, 3, 3, h, h)),
-            self._param("loc1_w", _stacked(conv_init, n), (n, 3, 3, h, h)),
+            self._param("loc0_w", stacked_conv_init, (n, 3, 3, h, h)),
+            self._param("loc1_w", stacked_conv_init, (n, 3, 3, h, h)),
             # Zero: the location logits start flat (see `location_logits`).
             self._param("loc2_w", zeros, (n, 1, 1, h, 1)),
         ]
@@ -356,16 +415,17 @@ class SceneGenNet(nn.Module):
         if cfg.separate_attribute_mlps:
             # The paper's MLP_box, MLP_theta and MLP_v: one three-layer MLP per attribute.
             self.attr_mlps = [
-                self._attribute_mlp(name, size, row)
+                self._attribute_mlp(draws, name, size, row)
                 for name, size, row in zip(ATTRIBUTES, sizes, rows, strict=True)
             ]
         else:
             # One MLP whose last layer outputs all three (box | heading | velocity).
-            self.attr_mlps = [self._attribute_mlp("attr", sum(sizes), np.concatenate(rows))]
+            self.attr_mlps = [
+                self._attribute_mlp(draws, "attr", sum(sizes), np.concatenate(rows))]
         if cfg.attribute_map_input:
             # Layer 0's weights for the map channels at the actor's bin, per attribute MLP.
             self.attr_map_w = [
-                self._param(f"{name}0_map_w", _stacked(conv_init, n), (n, cm, h))
+                self._param(f"{name}0_map_w", stacked_conv_init, (n, cm, h))
                 for name in ATTRIBUTES
             ]
         if cfg.attribute_map_skip:
@@ -388,12 +448,12 @@ class SceneGenNet(nn.Module):
                                               tuple(shape))
         return value
 
-    def _attribute_mlp(self, name: str, out: int, last_bias):
+    def _attribute_mlp(self, draws: InitialDraws, name: str, out: int, last_bias):
         """One per-class three-layer MLP's parameters, ([w0, w1, w2], [b0, b1, b2]), with
         `out` outputs whose biases start at `last_bias` and weights small."""
         n, h = NUM_CLASSES, self.cfg.hidden
-        dense = _stacked(nn.initializers.lecun_normal(), n)
-        last = _stacked(nn.initializers.variance_scaling(0.1, "fan_in", "normal"), n)
+        dense = draws.lecun_normal(stacked=True)
+        last = draws.variance_scaling(0.1, "normal", stacked=True)
         zeros = nn.initializers.zeros
         ws = [
             self._param(f"{name}0_w", dense, (n, h, h)),
@@ -622,7 +682,8 @@ def init_params(cfg: Config, key):
     Compiled: flax creates the parameters by running one step of the network, which, run
     eagerly, dispatches its operations one by one (8 s for `tiny` on 2 cores); compiled, XLA
     drops that step (only the parameters are returned) and keeps their initialisers
-    (`backend.init_compiler_options`: 1.2 s)."""
+    (`backend.init_compiler_options`), whose random values all come from one PRNG call
+    (`InitialDraws`: `tiny`'s program compiles in 0.5 s instead of 2.5 s, slow Xeon)."""
     net = SceneGenNet(cfg)
     h = cfg.grid_size
     m = jnp.zeros((1, h, h, len(cfg.map_channels)))
