@@ -236,6 +236,8 @@ def _mlp(x, ws, bs, cls):
 
 # Values per PRNG call of the initial parameters (`InitialDraws`).
 INIT_BLOCK = 1 << 20
+# The standard deviation of a standard normal truncated to [-2, 2] (jax.nn.initializers).
+TRUNCATED_STD = 0.87962566103423978
 
 
 class InitialDraws:
@@ -292,9 +294,6 @@ class InitialDraws:
         """`jax.nn.initializers.lecun_normal()` (flax's default for weights)."""
         return self.variance_scaling(1.0, "truncated_normal", stacked)
 
-
-# The standard deviation of a standard normal truncated to [-2, 2] (jax.nn.initializers).
-TRUNCATED_STD = 0.87962566103423978
 
 
 def lstm_gates_reference(gates, c):
@@ -682,8 +681,8 @@ def init_params(cfg: Config, key):
     Compiled: flax creates the parameters by running one step of the network, which, run
     eagerly, dispatches its operations one by one (8 s for `tiny` on 2 cores); compiled, XLA
     drops that step (only the parameters are returned) and keeps their initialisers
-    (`backend.init_compiler_options`), whose random values all come from one PRNG call
-    (`InitialDraws`: `tiny`'s program compiles in 0.5 s instead of 2.5 s, slow Xeon)."""
+    (`backend.init_compiler_options`), whose random values come from one PRNG call per 2^20
+    values (`InitialDraws`: `tiny`'s program compiles in 0.5 s instead of 2.5 s, slow Xeon)."""
     net = SceneGenNet(cfg)
     h = cfg.grid_size
     m = jnp.zeros((1, h, h, len(cfg.map_channels)))
