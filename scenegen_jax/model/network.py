@@ -295,7 +295,6 @@ class InitialDraws:
         return self.variance_scaling(1.0, "truncated_normal", stacked)
 
 
-
 def lstm_gates_reference(gates, c):
     """ConvLSTM cell update from pre-activation gates [.., 4h] (order i, f, o, g): (h, c)."""
     i, f, o, g = jnp.split(gates, 4, axis=-1)
