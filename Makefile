@@ -18,8 +18,9 @@ $(VENV)/.installed: pyproject.toml
 
 # Three pytest workers on the 2-core machines we test on, each taking whole modules in
 # collection order so that module fixtures are built once: with two (one per core) the
-# cores idled 9 % of the time (waits on CLI subprocesses and files, the last module's tail;
-# session 46, slow Xeon: 892 s wall at 191 % CPU, with three 804 s at 197 %).
+# cores idled about a tenth of the time (single-threaded imports and tracing, waits on files,
+# the last module's tail). Session 46, slow Xeon, two pairs an hour apart: two workers 892
+# and 963 s at 191 and 188 % CPU, three 804 and 917 s at 197 and 192 %.
 # TEST_WORKERS=0 runs the suite in this process. The suite's wall time is printed at the end.
 TEST_WORKERS ?= 3
 
