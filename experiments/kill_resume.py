@@ -4,8 +4,8 @@ The acceptance check of issue 24, as a script (minutes on a CPU, so not part of 
 tests/test_train.py has the one-kill version):
 
 1. `scenegen prepare` a tiny-config cache of the Argoverse 2 train logs into a temporary folder;
-2. `scenegen train` an uninterrupted run of `--steps` steps (a small model, the shapes of
-   tests/small.py via `--set`; a checkpoint every `--save-every` steps);
+2. `scenegen train` an uninterrupted run of `--steps` steps (a small model via `--set`, of
+   tests/small.py's width with more actor slots; a checkpoint every `--save-every` steps);
 3. the same command in a second workdir, killed with SIGKILL `--kills` times at seeded random
    moments and restarted after each kill, then run to completion;
 4. the final train states of both runs compared leaf by leaf with `np.array_equal`.
@@ -41,7 +41,7 @@ import numpy as np
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DEFAULT_DATA = os.path.normpath(os.path.join(REPO, "..", "shared", "data", "av2_sensor_mini"))
-# tests/small.py's shapes: a step takes a fraction of a second on one CPU core.
+# tests/small.py's width, more actor slots: a step takes a fraction of a second on one core.
 SMALL = ("max_actors=15", "bptt_window=8", "batch_size=2", "hidden=8", "gn_groups=2")
 TMP_MARKER = ".orbax-checkpoint-tmp"  # orbax's name for a checkpoint folder being written
 CHECKSUM_FILE = "scenegen_sha256.json"  # written last into a saved step's folder

@@ -44,9 +44,9 @@ def test_damaged_newest_checkpoint_is_set_aside_and_the_rerun_finishes(
     workdir = str(tmp_path / "wd")
     train(CFG, tiny_train_cache.path, workdir, STEPS, save_every=EVERY, log_every=2,
           progress=False)
-    # Every scene of the tiny cache holds 13 or more actors in the region, CFG 9 slots.
+    # Every scene of the tiny cache holds 13 or more actors in the region, CFG 6 slots.
     n = len(tiny_train_cache)
-    assert f"{n} of {n} scenes hold more than max_actors = 9 actors" in caplog.text
+    assert f"{n} of {n} scenes hold more than max_actors = {CFG.max_actors} actors" in caplog.text
     meta = os.path.join(workdir, "checkpoints", str(STEPS), "default", "_METADATA")
     open(meta, "w").close()  # empty: orbax cannot restore the step
     train(CFG, tiny_train_cache.path, workdir, STEPS, save_every=EVERY, log_every=2,

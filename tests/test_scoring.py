@@ -128,8 +128,8 @@ def test_score_cli_terms_sum_and_top_k(tiny_train_cache, tmp_path, capsys):
         assert float(row["nll_per_actor"]) == pytest.approx(per_actor, abs=2e-3)
     scene_nll = np.array([float(r["scene_nll"]) for r in rows])
     assert summary["scene_nll"] == pytest.approx(scene_nll.mean(), rel=1e-5)
-    # Scenes with more actors in the region than CFG's 9 slots (every one of the tiny cache's)
-    # are scored on their first 9, without the stop token.
+    # Scenes with more actors in the region than CFG's 6 slots (every one of the tiny cache's)
+    # are scored on their first 6, without the stop token.
     pos, half = tiny_train_cache.actors.position, CFG.region_m / 2
     in_region = tiny_train_cache.actors.valid & ((pos >= -half) & (pos < half)).all(-1)
     truncated = in_region.sum(1) > CFG.max_actors

@@ -203,16 +203,18 @@ def test_overfit_two_real_scenes(overfit_run):
 
 def test_split_train_step_equals_the_one_program_step(tiny_train_cache, small_scenes):
     """The train step as programs called chunk by chunk, each window's chunks' backward passes
-    chained through the carry (`SplitTrainStep`; windows of 8 steps here, two chunks of 4 steps
-    each, then the last 2 steps), against the one-program step over two steps: the same loss,
+    chained through the carry (`SplitTrainStep`; windows of 6 steps here, two chunks of 3 steps
+    each, then the last step), against the one-program step over two steps: the same loss,
     statistics and gradient norm (a gradient missing a part, e.g. the map convolution's or a
     chunk's carry, changes it), and the same parameters wherever the gradient is not ~0
     (Adam's first steps move a parameter by about the learning rate whatever its gradient's
     size). The split step is compiled from shapes alone, as `QuickStartTrainStep` compiles
     it in the background."""
+    from scenegen_jax.likelihood.unroll import chunk_steps, num_windows
     from scenegen_jax.train.step import SplitTrainStep
 
-    cfg = CFG.replace(rotate_augment=True, bptt_window=8)
+    cfg = CFG.replace(rotate_augment=True, bptt_window=6)
+    assert chunk_steps(cfg) == 3 and num_windows(cfg) == 2
     batch = jax.device_put(_batch(tiny_train_cache, small_scenes))
     shapes = jax.eval_shape(lambda: (init_state(cfg), batch))
     split, fused = SplitTrainStep(cfg, *shapes, quick=False), make_train_step(cfg)
@@ -922,8 +924,9 @@ from scenegen_jax.likelihood.batch import gather_batch, to_device
 from scenegen_jax.train.step import init_state, make_train_step
 from jax.sharding import NamedSharding, PartitionSpec as P
 assert jax.device_count() == 8, jax.devices()
-# One window of 10 steps: two programs to compile, each smaller than with two windows of 8.
-cfg = get_config("tiny").replace(max_actors=9, bptt_window=10, batch_size=8, hidden=8, gn_groups=2)
+# CFG's one window of 7 steps: two programs to compile, each smaller than with two windows.
+cfg = get_config("tiny").replace(max_actors={CFG.max_actors}, bptt_window={CFG.bptt_window},
+                                 batch_size=8, hidden=8, gn_groups=2)
 cache = load_cache({tiny_train_cache.path!r})
 host = gather_batch(cache, np.arange(8), cfg)
 out = []

@@ -31,8 +31,8 @@ def _batch(cache, idx):
 
 def _crop(cache, idx, thetas, cfg):
     """`crop_batch` of the two small scenes, the first read as complete: both hold more actors
-    than CFG's 9 slots (so no stop token: `Scene.complete`); the first read as if its region
-    held only those 9 gives the tests a stop token's terms too."""
+    than CFG's 6 slots (so no stop token: `Scene.complete`); the first read as if its region
+    held only those 6 gives the tests a stop token's terms too."""
     maps, scene = crop_batch(_batch(cache, idx), jnp.asarray(thetas), cfg)
     return maps, scene.replace(complete=jnp.array([True, False]))
 
@@ -41,10 +41,11 @@ def _crop(cache, idx, thetas, cfg):
 def reference_case(tiny_train_cache, small_scenes):
     """Inputs of the fast-against-reference tests, and the reference's terms (full
     normaliser) and gradient (64 hard negatives), computed once for every variant."""
-    # One window: the reference has no truncation either. With the canonical order's input
-    # channel (`order_channel`), whose gates are the one input that changes at every step,
-    # and the map at each actor's bin as an input of the attribute MLPs.
-    cfg = CFG.replace(bptt_window=16, order_channel=True, attribute_map_input=True)
+    # One window (CFG's 7 steps and a padding step): the reference has no truncation either.
+    # With the canonical order's input channel (`order_channel`), whose gates are the one
+    # input that changes at every step, and the map at each actor's bin as an input of the
+    # attribute MLPs.
+    cfg = CFG.replace(bptt_window=8, order_channel=True, attribute_map_input=True)
     params = random_params(cfg, jax.random.key(1))
     maps, scene = _crop(tiny_train_cache, small_scenes, [0.0, 1.0], cfg)
     ref = reference_step_terms(params, cfg, maps, scene, None)
@@ -80,7 +81,11 @@ def test_fast_unroll_equals_plain_reference(reference_case, chunk_bytes, step_lo
         t, _, _ = unroll_terms(p, cfg, maps, scene, 64)
         return -sum(jnp.sum(v) for v in t.values())
 
-    g_fast = jax.grad(fast_loss)(params)
+    # Chunked, the gradient runs eagerly: each chunk's operations compile once and serve every
+    # chunk, less than one program of all the chunks; the whole window compiles as one program
+    # (eagerly, ~700 single operations; session 47: 21 -> 9 s).
+    grad = jax.grad(fast_loss)
+    g_fast = (grad if chunk_bytes else jax.jit(grad))(params)
     # float32 sums over hundreds of terms in another order: tolerances relative to the scale
     # of the gradient (the location bias is softmax-invariant: its exact gradient is 0).
     scale = max(float(np.abs(b).max()) for b in jax.tree.leaves(g_ref))
@@ -95,6 +100,7 @@ def test_only_a_differentiated_unroll_is_unrolled_on_cpu(reference_case):
     from scenegen_jax import backend
 
     cfg, params, maps, scene, _, _ = reference_case
+    cfg = cfg.replace(bptt_window=16)  # lowered only: a window of 16 steps, 9 of them padding
 
     def lines(differentiated):  # of the lowered program: 16 steps against a loop body of 4
         return jax.jit(lambda p: unroll_terms(p, cfg, maps, scene, None, differentiated)).lower(
@@ -107,7 +113,7 @@ def test_only_a_differentiated_unroll_is_unrolled_on_cpu(reference_case):
 def test_remat_gives_the_same_loss_and_gradients(tiny_train_cache, small_scenes, step_loop,
                                                  monkeypatch):
     """Recomputing the backbone and heads in the backward pass (chunks of 3 steps unrolled,
-    or one step per iteration of the compiled loop; two windows of 5 with the state carried
+    or one step per iteration of the compiled loop; two windows of 4 with the state carried
     between them) changes neither the loss nor its gradients."""
     import scenegen_jax.backend as backend
     import scenegen_jax.likelihood.unroll as unroll
@@ -119,7 +125,7 @@ def test_remat_gives_the_same_loss_and_gradients(tiny_train_cache, small_scenes,
     params = random_params(CFG, jax.random.key(2))
 
     def loss(p, remat):
-        cfg = CFG.replace(bptt_window=5, remat=remat)
+        cfg = CFG.replace(bptt_window=4, remat=remat)
         t, _, _ = unroll_terms(p, cfg, maps, scene, 64)
         return -sum(jnp.sum(v) for v in t.values())
 
@@ -136,16 +142,15 @@ def test_remat_gives_the_same_loss_and_gradients(tiny_train_cache, small_scenes,
 # summation order swaps some of them for their neighbours and moves the gradient by up to 8 %
 # (seen with the compiled loops at XLA's lowest optimisation level; 3e-4 with these 64).
 HARD_NEGATIVES = 64
-# Its actor slots: 7 steps with the stop, windows of 3 + 3 + 1 (each window of the CPU's
-# unrolled programs is traced and compiled on its own: 9 slots made 4 windows).
-WINDOW_TEST_ACTORS = 6
+# Its windows: CFG's 7 steps as 3 + 3 + 1 (each window of the CPU's unrolled programs is
+# traced and compiled on its own).
 
 
 @pytest.fixture(scope="module")
 def autodiff_case(tiny_train_cache, small_scenes):
     """Inputs of the window-by-window test, and the mean scene NLL, its stats and its
     gradient by plain autodiff through the whole unroll, computed once for every variant."""
-    cfg = CFG.replace(bptt_window=3, max_actors=WINDOW_TEST_ACTORS, hard_negatives=HARD_NEGATIVES)
+    cfg = CFG.replace(bptt_window=3, hard_negatives=HARD_NEGATIVES)
     maps, scene = _crop(tiny_train_cache, small_scenes, [0.5, 2.0], cfg)
     params = random_params(cfg, jax.random.key(4))
     value = jax.jit(jax.value_and_grad(loss_fn, has_aux=True), static_argnums=1)(
@@ -162,8 +167,7 @@ def test_window_by_window_gradient_equals_autodiff(autodiff_case, remat, compile
     whole unroll (Python loops)."""
     import scenegen_jax.backend as backend
 
-    cfg = CFG.replace(bptt_window=3, max_actors=WINDOW_TEST_ACTORS, remat=remat,
-                      hard_negatives=HARD_NEGATIVES)
+    cfg = CFG.replace(bptt_window=3, remat=remat, hard_negatives=HARD_NEGATIVES)
     assert num_windows(cfg) == 3
     maps, scene, params, ((loss, stats), grads) = autodiff_case
     monkeypatch.setattr(backend, "compiled_window_loop", lambda: compiled_loop)
@@ -187,7 +191,7 @@ def test_window_by_window_gradient_equals_autodiff(autodiff_case, remat, compile
 
 
 def test_truncation_cuts_gradients_between_windows(tiny_train_cache, small_scenes):
-    cfg = CFG.replace(bptt_window=5)  # two windows of the 10 steps
+    cfg = CFG.replace(bptt_window=4)  # two windows of the 7 steps
     params = random_params(cfg, jax.random.key(2))
     maps, scene = _crop(tiny_train_cache, small_scenes, [0.0, 0.0], cfg)
 
@@ -211,10 +215,10 @@ def test_truncation_cuts_gradients_between_windows(tiny_train_cache, small_scene
 
 
 def test_a_truncated_scene_has_no_stop_token(tiny_train_cache, small_scenes):
-    """The two small scenes hold 13 and 14 actors in the region, more than CFG's 9 slots:
-    cropped, they are not complete, and their likelihood is that of the 9 kept actors with no
-    stop token (the 10th actor is not the end of the scene). The same 9 actors read as a
-    complete scene score the same terms at their 9 steps, plus the stop token's."""
+    """The two small scenes hold 13 and 14 actors in the region, more than CFG's 6 slots:
+    cropped, they are not complete, and their likelihood is that of the 6 kept actors with no
+    stop token (the 7th actor is not the end of the scene). The same 6 actors read as a
+    complete scene score the same terms at their 6 steps, plus the stop token's."""
     from scenegen_jax.scene import STOP
 
     maps, scene = crop_batch(_batch(tiny_train_cache, small_scenes), jnp.zeros(2), CFG)
