@@ -12,7 +12,8 @@ from scenegen_jax.config import get_config
 # windows, 8 + 2 steps, took twice the compile time of the train step: every window traces
 # its own heads; tests of the windows set their own `bptt_window`). On CPU every step of a
 # differentiated window is traced and compiled on its own, so the suite's compile time
-# grows with the steps (session 47: 9 slots and 10 steps cost the suite a third more).
+# grows with the steps (session 47, fresh clones on a slow Xeon: `make test` 871 s with 9
+# slots and 10 steps, 797 s with these; bench/README.md).
 CFG = get_config("tiny").replace(
     max_actors=6,
     bptt_window=7,
