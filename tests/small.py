@@ -9,8 +9,8 @@ import numpy as np
 from scenegen_jax.config import get_config
 
 # Small enough to compile quickly: 6 actor slots, 7 generation steps in one window (two
-# windows, 8 + 2 steps, took twice the compile time of the train step: every window traces
-# its own heads; tests of the windows set their own `bptt_window`). On CPU every step of a
+# windows took twice the compile time of the train step: every window traces its own
+# heads; tests of the windows set their own `bptt_window`). On CPU every step of a
 # differentiated window is traced and compiled on its own, so the suite's compile time
 # grows with the steps (session 47, fresh clones on a slow Xeon: `make test` 871 s with 9
 # slots and 10 steps, 797 s with these; bench/README.md).
