@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import shutil
 
 import jax
 import numpy as np
@@ -23,10 +24,25 @@ STEPS, EVERY = 12, 4
 
 @pytest.fixture(scope="module")
 def uninterrupted(tiny_train_cache, tmp_path_factory):
-    workdir = str(tmp_path_factory.mktemp("full"))
+    """A workdir trained STEPS steps without a stop, checkpoints every EVERY steps."""
+    workdir = str(tmp_path_factory.mktemp("full") / "wd")
     train(CFG, tiny_train_cache.path, workdir, STEPS, save_every=EVERY, log_every=2,
           progress=False)
-    return load_trained(workdir)[1].params
+    return workdir
+
+
+@pytest.fixture(scope="module")
+def eight_steps(tiny_train_cache, tmp_path_factory):
+    """A workdir trained 8 steps, checkpoints at 4 and 8 (keep 2): each test damages a copy."""
+    workdir = str(tmp_path_factory.mktemp("eight") / "wd")
+    train(CFG, tiny_train_cache.path, workdir, 8, save_every=EVERY, keep=2, progress=False)
+    return workdir
+
+
+def _copy(workdir, tmp_path) -> str:
+    out = str(tmp_path / "wd")
+    shutil.copytree(workdir, out)
+    return out
 
 
 def _assert_same(a, b):
@@ -41,32 +57,30 @@ def _steps(workdir):
 def test_damaged_newest_checkpoint_is_set_aside_and_the_rerun_finishes(
         tiny_train_cache, tmp_path, uninterrupted, caplog):
     caplog.set_level(logging.INFO, logger="scenegen_jax.train.loop")
-    workdir = str(tmp_path / "wd")
+    workdir = _copy(uninterrupted, tmp_path)
+    meta = os.path.join(workdir, "checkpoints", str(STEPS), "default", "_METADATA")
+    open(meta, "w").close()  # empty: orbax cannot restore the step
     train(CFG, tiny_train_cache.path, workdir, STEPS, save_every=EVERY, log_every=2,
           progress=False)
     # Every scene of the tiny cache holds 13 or more actors in the region, CFG 6 slots.
     n = len(tiny_train_cache)
     assert f"{n} of {n} scenes hold more than max_actors = {CFG.max_actors} actors" in caplog.text
-    meta = os.path.join(workdir, "checkpoints", str(STEPS), "default", "_METADATA")
-    open(meta, "w").close()  # empty: orbax cannot restore the step
-    train(CFG, tiny_train_cache.path, workdir, STEPS, save_every=EVERY, log_every=2,
-          progress=False)
     assert "damaged checkpoint moved to" in caplog.text
     aside = os.listdir(os.path.join(workdir, "checkpoints.damaged"))
     assert len(aside) == 1 and aside[0].startswith(f"{STEPS}-")
     assert _steps(workdir) == [4, 8, 12]
     state = load_trained(workdir)[1]
     assert int(state.step) == STEPS
-    _assert_same(state.params, uninterrupted)
+    _assert_same(state.params, load_trained(uninterrupted)[1].params)
     # One metrics row per logged step, although steps 9-12 ran twice.
     with open(os.path.join(workdir, "metrics.jsonl")) as f:
         logged = [json.loads(line)["step"] for line in f]
     assert logged == list(range(2, STEPS + 1, 2))
 
 
-def test_changed_array_bytes_are_caught_by_the_checksums(tiny_train_cache, tmp_path, caplog):
-    workdir = str(tmp_path / "wd")
-    train(CFG, tiny_train_cache.path, workdir, 8, save_every=EVERY, keep=2, progress=False)
+def test_changed_array_bytes_are_caught_by_the_checksums(tiny_train_cache, eight_steps, tmp_path,
+                                                         caplog):
+    workdir = _copy(eight_steps, tmp_path)
     # What a flipped byte inside a parameter file gives when the format does not notice: the
     # arrays restore, with other values than were saved.
     path = os.path.join(workdir, "checkpoints", "8", CHECKSUM_FILE)
@@ -104,11 +118,10 @@ def test_unfinished_saves_are_removed(tmp_path):
     assert sorted(os.listdir(ckpts)) == ["0"]
 
 
-def test_load_params_reads_the_parameters_alone(tiny_train_cache, tmp_path, caplog):
+def test_load_params_reads_the_parameters_alone(eight_steps, tmp_path, caplog):
     from scenegen_jax.workdir import load_params
 
-    workdir = str(tmp_path / "wd")
-    train(CFG, tiny_train_cache.path, workdir, 8, save_every=EVERY, keep=2, progress=False)
+    workdir = _copy(eight_steps, tmp_path)
     cfg, params, step = load_params(workdir)
     assert cfg == CFG and step == 8
     _assert_same(params, load_trained(workdir)[1].params)
