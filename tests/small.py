@@ -12,8 +12,8 @@ from scenegen_jax.config import get_config
 # windows took twice the compile time of the train step: every window traces its own
 # heads; tests of the windows set their own `bptt_window`). On CPU every step of a
 # differentiated window is traced and compiled on its own, so the suite's compile time
-# grows with the steps (session 47, fresh clones on a slow Xeon: `make test` 871 s with 9
-# slots and 10 steps, 797 s with these; bench/README.md).
+# grows with the steps (session 47, a slow Xeon: `make test` 995 s with 9 slots and 10 steps,
+# 931 s with these and test_checkpoint's shared workdirs, run one after the other).
 CFG = get_config("tiny").replace(
     max_actors=6,
     bptt_window=7,

@@ -142,8 +142,6 @@ def test_remat_gives_the_same_loss_and_gradients(tiny_train_cache, small_scenes,
 # summation order swaps some of them for their neighbours and moves the gradient by up to 8 %
 # (seen with the compiled loops at XLA's lowest optimisation level; 3e-4 with these 64).
 HARD_NEGATIVES = 64
-# Its windows: CFG's 7 steps as 3 + 3 + 1 (each window of the CPU's unrolled programs is
-# traced and compiled on its own).
 
 
 @pytest.fixture(scope="module")
