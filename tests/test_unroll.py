@@ -63,13 +63,16 @@ def reference_case(tiny_train_cache, small_scenes):
 def test_fast_unroll_equals_plain_reference(reference_case, chunk_bytes, step_loop,
                                             monkeypatch):
     """Backbone chunks of the whole window (default here), 1 step, and 3 steps (uneven), all
-    unrolled as on CPU; and the steps as the compiled loop of accelerators."""
+    unrolled as on CPU; and the steps as the compiled loop of accelerators, one step an
+    iteration (the scorer's tests run the loop of `backend.STEP_LOOP_UNROLL` steps: 4 steps
+    an iteration compiled this test's gradient in 19 s instead of 7, session 48)."""
     import scenegen_jax.backend as backend
     import scenegen_jax.likelihood.unroll as unroll
 
     if chunk_bytes is not None:
         monkeypatch.setattr(unroll, "HEAD_CHUNK_BYTES", chunk_bytes)
     monkeypatch.setattr(backend, "compiled_step_loop", lambda differentiated=True: step_loop)
+    monkeypatch.setattr(backend, "STEP_LOOP_UNROLL", 1)
     cfg, params, maps, scene, ref, g_ref = reference_case
     fast, valid, _ = jax.jit(lambda p: unroll_terms(p, cfg, maps, scene, None))(params)
     steps = ref["class"].shape[1]
@@ -81,11 +84,9 @@ def test_fast_unroll_equals_plain_reference(reference_case, chunk_bytes, step_lo
         t, _, _ = unroll_terms(p, cfg, maps, scene, 64)
         return -sum(jnp.sum(v) for v in t.values())
 
-    # Chunked, the gradient runs eagerly: each chunk's operations compile once and serve every
-    # chunk, less than one program of all the chunks; the whole window compiles as one program
-    # (eagerly, ~700 single operations; session 47: 21 -> 9 s).
-    grad = jax.grad(fast_loss)
-    g_fast = (grad if chunk_bytes else jax.jit(grad))(params)
+    # One program: eagerly, ~300-700 single operations compiled one by one (session 48, the
+    # two chunked variants alone: 81 -> 75 s of CPU time; session 47, the whole window: 21 -> 9 s).
+    g_fast = jax.jit(jax.grad(fast_loss))(params)
     # float32 sums over hundreds of terms in another order: tolerances relative to the scale
     # of the gradient (the location bias is softmax-invariant: its exact gradient is 0).
     scale = max(float(np.abs(b).max()) for b in jax.tree.leaves(g_ref))
@@ -112,13 +113,15 @@ def test_only_a_differentiated_unroll_is_unrolled_on_cpu(reference_case):
 @pytest.mark.parametrize("step_loop", [False, True])
 def test_remat_gives_the_same_loss_and_gradients(tiny_train_cache, small_scenes, step_loop,
                                                  monkeypatch):
-    """Recomputing the backbone and heads in the backward pass (chunks of 3 steps unrolled,
-    or one step per iteration of the compiled loop; two windows of 4 with the state carried
+    """Recomputing the backbone and heads in the backward pass (chunks of 3 steps and the
+    windows unrolled as on CPU, or as on accelerators one step per iteration of the compiled
+    step loop inside the compiled window loop; two windows of 4 with the state carried
     between them) changes neither the loss nor its gradients."""
     import scenegen_jax.backend as backend
     import scenegen_jax.likelihood.unroll as unroll
 
     monkeypatch.setattr(unroll, "HEAD_CHUNK_BYTES", 3 * 2 * 32 * 32 * 8 * 4)
+    monkeypatch.setattr(backend, "compiled_window_loop", lambda: step_loop)
     monkeypatch.setattr(backend, "compiled_step_loop", lambda differentiated=True: step_loop)
     monkeypatch.setattr(backend, "STEP_LOOP_UNROLL", 1)  # the same loop, a smaller body
     maps, scene = _crop(tiny_train_cache, small_scenes, [0.0, 1.0], CFG)
