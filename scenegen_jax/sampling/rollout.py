@@ -1,9 +1,9 @@
 """Autoregressive sampling of traffic scenes (paper sec. 3.3, SPEC sec. 6), jitted and vmapped.
 
-`rollout` generates ONE scene (unbatched) inside a single traced function: step 0 (from the
-zero ConvLSTM state, whose recurrent convolutions it skips), then a `lax.while_loop` over the
-remaining steps, at most `cfg.max_actors` in all, whose carry (`SamplerState`) holds the
-ConvLSTM state, the actor raster, the actors so far, the previous bin and a done flag. No host
+`rollout` generates ONE scene (unbatched) inside a single traced function: a `lax.while_loop`
+over the steps, at most `cfg.max_actors`, the first from the zero ConvLSTM state, whose carry
+(`SamplerState`) holds the ConvLSTM state, the actor raster, the actors so far, the previous
+bin and a done flag. No host
 transfer, no Python loop over steps. The loop exits as soon as the scene is done; under `vmap`
 it runs until every scene of the batch is done and finished scenes are left unchanged
 (`lax.while_loop`'s batching rule selects their old carry), so a batched call returns exactly
