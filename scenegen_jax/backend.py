@@ -1,9 +1,11 @@
 """Every backend-specific choice, made here and nowhere else.
 
 What differs between XLA:CPU and accelerators: which loops are compiled (on XLA:CPU the
-unrolled window's step runs faster), how convolutions take their gradients (on XLA:CPU in
-its library's form, large ones in row bands), how training starts (on the train step split
-into programs of a few steps while the one-program step compiles), the compiler options of
+unrolled window's step runs faster), how convolutions take their gradients (on XLA:CPU
+large ones in row bands, and in its library's form inside a differentiated compiled loop,
+which runs on XLA:CPU only where the tests run the accelerators' loops), how training
+starts (on the train step split into programs of a few steps while the one-program step
+compiles), the compiler options of
 the parameter initialisation, the train step, the scorer and the sampler, how many calls run
 at once and how many scenes are vmapped together, the device mesh, and returning the
 compiler's freed host memory. Also where a multi-process job starts and which process
@@ -103,12 +105,13 @@ def compiled_step_loop(differentiated: bool = True) -> bool:
 
 def explicit_conv_gradients() -> bool:
     """Whether the model writes its convolutions' gradients in the form XLA:CPU's convolution
-    library takes (`model.network.conv`): on XLA:CPU where the unroll runs a compiled loop.
-    XLA:CPU rewrites the other forms of a convolution (those autodiff makes of its
-    gradients) into that one only outside loops (its ConvCanonicalization pass visits the
-    entry computation alone); inside a loop it emits them as plain loops, 10x slower at the
-    test suite's optimisation level (session 32: the `tiny` step's gradient with a compiled
-    step loop ran in 10 s, 0.8 s unrolled)."""
+    library takes (`model.network.conv`): on XLA:CPU where a differentiated unroll runs a
+    compiled loop, which happens only where tests patch `compiled_step_loop` or
+    `compiled_window_loop` to run the accelerators' loops there. XLA:CPU rewrites the other
+    forms of a convolution (those autodiff makes of its gradients) into that one only outside
+    loops (its ConvCanonicalization pass visits the entry computation alone); inside a loop it
+    emits them as plain loops, 10x slower at the test suite's optimisation level (session 32:
+    the `tiny` step's gradient with a compiled step loop ran in 10 s, 0.8 s unrolled)."""
     return on_cpu() and (compiled_window_loop() or compiled_step_loop())
 
 

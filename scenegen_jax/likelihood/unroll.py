@@ -25,7 +25,9 @@ train step, elsewhere `_scanned_steps`, the same mathematics as a loop over the 
     in cache (`head_chunk`; one step at the paper's width and grid): batching a whole window
     made XLA:CPU's convolutions 2-4x slower once the batch left the cache;
   * the location head runs only for the class scored at each step;
-  * a scene's first step skips the recurrent convolutions of the zero initial state;
+  * where the first window's start is static (windows in a Python loop: XLA:CPU, or a
+    single window), a scene's first step skips the recurrent convolutions of the zero
+    initial state;
   * the densities (small) run once, batched over all steps of the window;
   * with `cfg.remat`, a chunk's backbone and heads are recomputed in the backward pass
     instead of stored (`recompute_in_backward`), each one chunk late so that the recomputation

@@ -14,7 +14,7 @@ A pretrained model is a directory holding exactly three files:
 and a human-readable `MODEL_CARD.md` beside them. `load_pretrained(name)` finds `name` among
 the directories of this package (`available()`), or takes a path to such a directory,
 verifies the checksum and every array's shape against the config's model, and returns
-(config, parameters): no training state, no optimizer.
+(config, parameters, manifest): no training state, no optimizer.
 """
 
 from __future__ import annotations

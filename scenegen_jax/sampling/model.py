@@ -16,7 +16,7 @@ class Model(Protocol):
     """What the sampler needs from a network; every method takes the params first.
 
     Arrays carry a leading batch axis of 1 (the rollout is unbatched). The recurrent state is
-    an opaque PyTree. `scenegen_jax.sampling.rollout.NetworkModel` wraps `SceneGenNet`; tests
+    an opaque PyTree. `NetworkModel` (below) wraps `SceneGenNet`; tests
     substitute a fake with known outputs.
     """
 

@@ -10,10 +10,10 @@ epochs" of L positions (L: the total scene count, times the smallest factor maki
 least `MIN_EPOCH`, so the rounding of the shares stays below 1/L). In epoch e, cache i gets
 n_i = round(w_i / sum(w) * L) of the positions, laid out in a random order drawn from
 (seed, e); the k-th of cache i's positions in epoch e takes place e * n_i + k of cache i's
-own stream, which runs through per-pass permutations of that cache drawn from (seed, pass,
-i). Everything is a function of (seed, step) alone, so a resumed run draws what an
-uninterrupted one would. With one cache this is the plain epoch-permutation order
-(`batch_indices`).
+own stream, which runs through per-pass permutations of that cache drawn from (seed, pass)
+for cache 0, (seed, pass, i) for the others. Everything is a function of (seed, step)
+alone, so a resumed run draws what an uninterrupted one would. With one cache this is the
+plain epoch-permutation order (`batch_indices`).
 """
 
 from __future__ import annotations
