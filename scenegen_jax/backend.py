@@ -5,11 +5,10 @@ unrolled window's step runs faster), how convolutions take their gradients (on X
 large ones in row bands, and in its library's form inside a differentiated compiled loop,
 which runs on XLA:CPU only where the tests run the accelerators' loops), how training
 starts (on the train step split into programs of a few steps while the one-program step
-compiles), the compiler options of
-the parameter initialisation, the train step, the scorer and the sampler, how many calls run
-at once and how many scenes are vmapped together, the device mesh, and returning the
-compiler's freed host memory. Also where a multi-process job starts and which process
-writes.
+compiles), the compiler options of the parameter initialisation, the train step, the scorer
+and the sampler, how many calls run at once and how many scenes are vmapped together, the
+device mesh, and returning the compiler's freed host memory. Also where a multi-process job
+starts and which process writes.
 
 What differs between CPUs, read once at start-up (`cpu_vendor` from /proc/cpuinfo,
 `cpu_has_avx512` from CPUID): which library runs the train step's convolutions and the row

@@ -85,7 +85,8 @@ def test_fast_unroll_equals_plain_reference(reference_case, chunk_bytes, step_lo
         return -sum(jnp.sum(v) for v in t.values())
 
     # One program: eagerly, ~300-700 single operations compiled one by one (session 48, the
-    # two chunked variants alone: 81 -> 75 s of CPU time; session 47, the whole window: 21 -> 9 s).
+    # two chunked variants alone: 81 -> 75 s of CPU time; session 47, the whole window: 21 ->
+    # 9 s).
     g_fast = jax.jit(jax.grad(fast_loss))(params)
     # float32 sums over hundreds of terms in another order: tolerances relative to the scale
     # of the gradient (the location bias is softmax-invariant: its exact gradient is 0).

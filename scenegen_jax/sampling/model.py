@@ -16,8 +16,8 @@ class Model(Protocol):
     """What the sampler needs from a network; every method takes the params first.
 
     Arrays carry a leading batch axis of 1 (the rollout is unbatched). The recurrent state is
-    an opaque PyTree. `NetworkModel` (below) wraps `SceneGenNet`; tests
-    substitute a fake with known outputs.
+    an opaque PyTree. `NetworkModel` (below) wraps `SceneGenNet`; tests substitute a fake
+    with known outputs.
     """
 
     def initial_state(self, params: Any) -> Any: ...

@@ -3,12 +3,11 @@
 `rollout` generates ONE scene (unbatched) inside a single traced function: a `lax.while_loop`
 over the steps, at most `cfg.max_actors`, the first from the zero ConvLSTM state, whose carry
 (`SamplerState`) holds the ConvLSTM state, the actor raster, the actors so far, the previous
-bin and a done flag. No host
-transfer, no Python loop over steps. The loop exits as soon as the scene is done; under `vmap`
-it runs until every scene of the batch is done and finished scenes are left unchanged
-(`lax.while_loop`'s batching rule selects their old carry), so a batched call returns exactly
-the per-scene results. `sampling.batch` maps it over scenes and keys; `sampling.attributes`
-draws each actor's box, heading and velocity.
+bin and a done flag. No host transfer, no Python loop over steps. The loop exits as soon as
+the scene is done; under `vmap` it runs until every scene of the batch is done and finished
+scenes are left unchanged (`lax.while_loop`'s batching rule selects their old carry), so a
+batched call returns exactly the per-scene results. `sampling.batch` maps it over scenes and
+keys; `sampling.attributes` draws each actor's box, heading and velocity.
 
 One step t (key `fold_in(key, t)`):
   1. Input gates = map gates (computed once per scene before the loop: the map is constant)
