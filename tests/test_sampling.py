@@ -406,8 +406,12 @@ def test_location_temperature_divides_the_logits_before_the_masked_softmax():
     # over the allowed bins 300..N-1.
     row = peaked((100, 9.0), (400, 3.0), (500, 2.0))
     params = fake_params([VEHICLE, VEHICLE], [peaked((300, 30.0)), row])
+    compiled = None
     for t in (0.5, 2.0):
         out = run_fake(params, location_temperature=t)
+        # The temperature is an argument of the compiled sampler: one program for both.
+        assert compiled in (None, jitted_sampler()._cache_size())
+        compiled = jitted_sampler()._cache_size()
         z = row[300:] / t
         want = np.zeros(N_BINS)
         want[300:] = np.exp(z - z.max()) / np.exp(z - z.max()).sum()

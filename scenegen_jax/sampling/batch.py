@@ -62,7 +62,7 @@ def _take(tree, i):
     return jax.tree.map(lambda x: x[i], tree)
 
 
-def _sample_batch(keys, params, maps, egos, given, caps, *, cfg: Config,
+def _sample_batch(keys, params, maps, egos, given, caps, temperature, *, cfg: Config,
                   options: SamplerOptions, model: Model | None) -> Sample:
     b, s = keys.shape[:2]
     parallel = default_parallel() if options.parallel is None else options.parallel
@@ -70,7 +70,7 @@ def _sample_batch(keys, params, maps, egos, given, caps, *, cfg: Config,
         model = NetworkModel(cfg, single_example=parallel == 1)
 
     def one(key, map_raster, ego, g, c):
-        return rollout(key, params, map_raster, ego, cfg, g, c, options, model)
+        return rollout(key, params, map_raster, ego, cfg, g, c, options, model, temperature)
 
     if b * s == 1:  # one scene (each call on CPU): no vmap, whose batching of the while loops
         # traced their bodies several times over (sampler trace 2.5 -> 0.5 s, `tiny`)
@@ -109,9 +109,10 @@ def _sample_batch(keys, params, maps, egos, given, caps, *, cfg: Config,
 
 @functools.cache
 def jitted_sampler():
-    """`_sample_batch` jitted (cfg, options and model static) with the backend's sampling
-    compiler options; made on first use, so that importing this module leaves the backend
-    uninitialised (`jax.distributed` must start first)."""
+    """`_sample_batch` jitted (cfg, options and model static; the location temperature an
+    argument) with the backend's sampling compiler options; made on first use, so that
+    importing this module leaves the backend uninitialised (`jax.distributed` must start
+    first)."""
     return jax.jit(_sample_batch, static_argnames=("cfg", "options", "model"),
                    compiler_options=sampling_compiler_options())
 
@@ -129,7 +130,9 @@ def sample_batch(
     model: Model | None = None,
 ) -> Sample:
     """One compiled call for a batch: scene (b, s) is `rollout(keys[b, s], params, maps[b],
-    ...)`. Compiled once per (`cfg.inference()`, options, model, shapes).
+    ...)`. Compiled once per (`cfg.inference()`, options, model, shapes); the location
+    temperature is passed as an array, so that every temperature runs the same program
+    (a different one compiled 7-10 s for `tiny` on a slow Xeon).
 
     The B x S scenes run `options.parallel` at a time under vmap (`lax.map` over groups); a
     vmapped group runs until its longest scene is done. With parallel = 1 each scene runs on
@@ -148,8 +151,10 @@ def sample_batch(
     Returns:
       Sample with leading axes [B, S].
     """
-    return jitted_sampler()(keys, params, maps, egos, given, caps, cfg=cfg.inference(),
-                            options=options, model=model)
+    temperature = np.float32(options.location_temperature)
+    options = dataclasses.replace(options, location_temperature=1.0)  # the static part
+    return jitted_sampler()(keys, params, maps, egos, given, caps, temperature,
+                            cfg=cfg.inference(), options=options, model=model)
 
 
 def sample_split(keys: jax.Array, params: Any, maps, egos: Actors, given: Actors, caps, *,

@@ -92,7 +92,8 @@ HEATMAP_STEPS = (0, 5, 10, 15, 20)
 
 @dataclasses.dataclass(frozen=True)
 class SamplerOptions:
-    """The sampler's static settings (hashable: one compilation per distinct value).
+    """The sampler's settings (hashable: one compilation per distinct value, but for the
+    temperature, which `sample_batch` passes as an array: every temperature runs one program).
 
     proposals: M of best-of-M; None: the config's `proposals`.
     candidates: R, candidate draws per collision-rejection round.
@@ -294,6 +295,7 @@ def rollout(
     caps: jnp.ndarray | None = None,
     options: SamplerOptions = DEFAULT_OPTIONS,
     model: Model | None = None,
+    location_temperature: jnp.ndarray | None = None,
 ) -> Sample:
     """Samples one scene (unbatched; jit and vmap outside, see `sample_batch`).
 
@@ -309,11 +311,15 @@ def rollout(
       caps: optional int32 [3] maximum actors per class (given ones count); default N.
       options: static settings (`SamplerOptions`; its `parallel` is `sample_batch`'s).
       model: the network interface; default `NetworkModel(cfg)`.
+      location_temperature: optional float32 [] in place of `options.location_temperature`,
+        so that a traced value serves every temperature with one compiled program.
 
     Returns:
       Sample.
     """
     model = NetworkModel(cfg) if model is None else model
+    if location_temperature is None:
+        location_temperature = options.location_temperature
     m = cfg.proposals if options.proposals is None else options.proposals
     n = cfg.max_actors
     n_bins = cfg.grid_size * cfg.grid_size
@@ -345,8 +351,7 @@ def rollout(
         safe_cls = jnp.where(is_stop, 0, cls)
 
         loc = model.location_logits(params, f, safe_cls[None])[0]
-        if options.location_temperature != 1.0:
-            loc = loc / options.location_temperature
+        loc = loc / location_temperature
         log_probs, _ = masked_log_softmax(loc, ordering_mask(state.prev_bin, n_bins))
         # Bins allowed by the mask but with -inf logits give NaN in the softmax; drop them.
         log_probs = jnp.where(jnp.isnan(log_probs), -jnp.inf, log_probs)
