@@ -6,9 +6,10 @@ Networks", 2016) computes a 4 x 4 tile of outputs from an (r + 3) x (r + 3) tile
 each input tile is transformed (B^T d B), multiplied element by element with the transformed
 kernel (G g G^T), summed over input channels (one matrix product per element of the tile),
 and transformed back (A^T m A). For a 5 x 5 kernel that is 64 products per 16 outputs per
-input channel instead of 400: 6.25x fewer. The input transform is sums of a few shifted
-slices with constant weights, which XLA fuses into single passes over memory; the output
-transform one small matrix product (A^T (x) A^T, 16 x 64) and a transpose.
+input channel instead of 400: 6.25x fewer. The input transform is two small matrix products
+(B^T over the tiles' rows, then over their columns, 8 x 8 each), the output transform one
+(A^T (x) A^T, 16 x 64) and a transpose: few operations, so that a program with several of
+these convolutions compiles quickly.
 
 The matrices come from the Cook-Toom construction on the points 0, 1, -1, 2, -2, 1/2, -1/2 and
 infinity: A^T and G are written down from the points and B^T is solved exactly from the
@@ -62,18 +63,6 @@ def transforms(m: int, r: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return at, g, bt
 
 
-def _combine(coefficients, terms):
-    """sum_k coefficients[k] * terms[k], skipping zero coefficients and multiplications by
-    +-1 (XLA fuses the result into one pass)."""
-    out = None
-    for c, t in zip(coefficients, terms, strict=True):
-        if c == 0:
-            continue
-        t = t if c == 1 else -t if c == -1 else t * float(c)  # keeps t's dtype
-        out = t if out is None else out + t
-    return out
-
-
 def _strided(x, start: int, count: int, axis: int):
     """count slices of x along axis, TILE apart, from start."""
     return jax.lax.slice_in_dim(x, start, start + TILE * (count - 1) + 1, TILE, axis=axis)
@@ -82,18 +71,21 @@ def _strided(x, start: int, count: int, axis: int):
 def _input_tiles(xp, r: int):
     """Transformed input tiles of xp [B, TILE * th + n - TILE, TILE * tw + n - TILE, C], an
     input padded for an r x r kernel (n = TILE + r - 1): [n * n, B * th * tw, C], element
-    (a, b) of every tile first."""
+    (a, b) of every tile first. B^T d B as two small matrix products, one over the tiles' rows
+    and one over their columns, each on the n strided slices of its axis stacked: about 20
+    operations. Written as sums of slices with B^T's weights (up to n slices for each of the
+    n * n elements), the same transform was a program of ~1,600 lines a convolution, and a
+    scorer of `cpu` size with it compiled in 45 s instead of 7 (session 49, bench/README.md)."""
     _, _, bt = transforms(TILE, r)
     n = bt.shape[0]
     b, hp, wp, c = xp.shape
     th, tw = (hp - n) // TILE + 1, (wp - n) // TILE + 1
-    rows = [_strided(xp, k, th, 1) for k in range(n)]  # each [B, th, wp, C]
-    tiles = []
-    for a in range(n):
-        v = _combine(bt[a], rows)
-        cols = [_strided(v, k, tw, 2) for k in range(n)]  # each [B, th, tw, C]
-        tiles.extend(_combine(bt[e], cols) for e in range(n))
-    return jnp.stack(tiles).reshape(n * n, b * th * tw, c)
+    bt = jnp.asarray(bt, xp.dtype)
+    rows = jnp.stack([_strided(xp, k, th, 1) for k in range(n)])  # [n, B, th, wp, C]
+    v = jnp.einsum("ak,kbhwc->abhwc", bt, rows)
+    cols = jnp.stack([_strided(v, k, tw, 3) for k in range(n)])  # [n, n, B, th, tw, C]
+    t = jnp.einsum("ek,kabhwc->aebhwc", bt, cols)
+    return t.reshape(n * n, b * th * tw, c)
 
 
 def _kernel(w):
