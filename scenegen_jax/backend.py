@@ -237,7 +237,9 @@ def winograd_convolutions(kernel: tuple[int, ...], tiles: int) -> bool:
     direct. Session 41, the output transform as one matrix product: against the reference,
     batched sampling 2.16-2.29x (was 1.11-1.19x), scoring 1.76-1.95x, the train step
     1.27-1.30x; with AVX-512 still slower than direct (32 -> 128: 80 against 69 ms with the
-    sampler's options) (bench/README.md)."""
+    sampler's options). Session 49, the input transform as two matrix products: the programs
+    compile 2-3x faster (the shipped model's first scoring batch 57.7 -> 17.5-22.3 s), the
+    scorer at grid 128 runs about 15 % slower (bench/README.md)."""
     return (on_cpu() and tuple(kernel) == (5, 5) and tiles <= WINOGRAD_MAX_TILES
             and not cpu_has_avx512())
 

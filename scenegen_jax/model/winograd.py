@@ -75,7 +75,8 @@ def _input_tiles(xp, r: int):
     and one over their columns, each on the n strided slices of its axis stacked: about 20
     operations. Written as sums of slices with B^T's weights (up to n slices for each of the
     n * n elements), the same transform was a program of ~1,600 lines a convolution, and a
-    scorer of `cpu` size with it compiled in 45 s instead of 7 (session 49, bench/README.md)."""
+    scorer of `cpu` size with it compiled in 46 s, against 9-12 s now (AVX2; session 49,
+    bench/README.md)."""
     _, _, bt = transforms(TILE, r)
     n = bt.shape[0]
     b, hp, wp, c = xp.shape
