@@ -5,7 +5,6 @@ from __future__ import annotations
 import csv
 import json
 import os
-import re
 import socket
 import subprocess
 import sys
@@ -14,8 +13,9 @@ import time
 import jax
 import numpy as np
 import pytest
-from small import train_cmd, with_xla_flags
+from small import assert_same_adam_training, train_cmd, with_xla_flags
 
+from scenegen_jax.backend import cpu_cores
 from scenegen_jax.data.safe_pickle import load_pickle
 from scenegen_jax.train.loop import load_trained
 from scenegen_jax.train.step import init_state
@@ -48,37 +48,16 @@ def _wait(procs, logs, timeout=240):
             raise AssertionError(f"a process exited with {rc}:\n{text}")
 
 
-# Conv biases followed by a GroupNorm (which removes them) and the location logits' bias
-# (a softmax over the grid ignores it) have a gradient of exactly zero; their float noise
-# is turned into steps of up to lr by Adam in any two runs that sum in different orders.
-ZERO_GRADIENT = re.compile(r"^(backbone\d+|loc\d+)_b$")
-
-
 def _assert_same_training(workdir_a, workdir_b, step):
-    """Every parameter's change since initialisation agrees to 1e-3 of its size, but for at
-    most 1 in 200 of its elements, each within two runs' Adam steps of at most lr: an element
-    whose gradient is near Adam's epsilon (1e-8) turns the float noise of a different
-    summation order into a different step (seen: one of 576 location-head weights at step 2,
-    -1.1e-4 against -4.0e-4)."""
+    """The two workdirs' parameters at `step` are those of one training
+    (`small.assert_same_adam_training`)."""
     from flax.traverse_util import flatten_dict
 
     cfg, a = load_trained(workdir_a, step)
     _, b = load_trained(workdir_b, step)
-    init = flatten_dict(jax.device_get(init_state(cfg).params), sep="/")
-    a = flatten_dict(jax.device_get(a.params), sep="/")
-    b = flatten_dict(jax.device_get(b.params), sep="/")
-    compared = 0
-    for name, x0 in init.items():
-        if ZERO_GRADIENT.match(name):
-            continue
-        da, db = a[name] - x0, b[name] - x0
-        diff = np.abs(da - db).ravel()
-        outliers = np.argsort(diff)[len(diff) - len(diff) // 200:]
-        assert np.all(diff[outliers] <= 2 * cfg.learning_rate * step), (name, step)
-        rest = np.delete(diff, outliers)
-        assert np.linalg.norm(rest) <= 1e-3 * np.linalg.norm(da) + 1e-7, (name, step)
-        compared += 1
-    assert compared > 20
+    init, a, b = (flatten_dict(jax.device_get(p), sep="/")
+                  for p in (init_state(cfg).params, a.params, b.params))
+    assert_same_adam_training(init, a, b, cfg.learning_rate, step)
 
 
 @pytest.fixture(scope="module")
@@ -148,19 +127,27 @@ def _read_csv(path):
 
 
 @pytest.mark.slow
-def test_score_and_sample_on_four_devices_and_two_processes(
+def test_score_and_sample_on_several_devices_and_two_processes(
     tiny_train_cache, single_run, tmp_path
 ):
-    """`score` and `sample` give the same files on one device, on four devices of one
+    """`score` and `sample` give the same files on one device, on several devices of one
     process, and split over two processes (each its share of the scenes, merged by
-    process 0), bit for bit."""
+    process 0), bit for bit.
+
+    As many devices as cores, 2 to 4: XLA:CPU sizes its thread pool to the larger of the
+    cores and the devices, and splits a program's loops into as many parts as it has
+    threads, which moves a float step between the vector loop and its scalar remainder (on
+    a 2-core Zen 3, 4 devices drew a box a float step wider than one device from the same
+    key, session 50). Within one thread count the devices must not matter."""
     cache = tiny_train_cache.path
     logs = tmp_path / "logs"
     logs.mkdir()
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
     workdir = single_run
+    devices = min(4, max(2, cpu_cores()))
     runs = {"one": (env, 1),
-            "four_devices": (with_xla_flags(env, "--xla_force_host_platform_device_count=4"), 1),
+            "devices": (with_xla_flags(
+                env, f"--xla_force_host_platform_device_count={devices}"), 1),
             "two_processes": (env, 2)}
     for name, (run_env, processes) in runs.items():
         out = tmp_path / name
@@ -172,7 +159,7 @@ def test_score_and_sample_on_four_devices_and_two_processes(
     assert len(want) == len(tiny_train_cache)
     want_lines = (tmp_path / "one" / "samples" / "scenes.jsonl").read_text().splitlines()
     assert len(want_lines) == 5
-    for name in ("four_devices", "two_processes"):
+    for name in ("devices", "two_processes"):
         got_header, got = _read_csv(tmp_path / name / "s.csv")
         assert got_header == header and len(got) == len(want)
         for a, b in zip(want, got, strict=True):

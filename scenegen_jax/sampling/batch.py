@@ -173,7 +173,10 @@ def sample_split(keys: jax.Array, params: Any, maps, egos: Actors, given: Actors
 
     Every local device works: call c runs on device c mod D, and a batch left whole (one
     call, the accelerator default) has its maps split over the devices (a `data` mesh).
-    Each scene is the same on any number of devices.
+    Scenes run one at a time are never left whole: a batch of one scene on several devices
+    would otherwise run, padded, as a sharded program of its own, whose rounding differs
+    (a box size a float step apart on a Zen 3, session 50). Each scene is the same on any
+    number of devices.
 
     Args:
       keys, params, maps, egos, given, caps, cfg, options, model: as in `sample_batch`.
@@ -192,10 +195,11 @@ def sample_split(keys: jax.Array, params: Any, maps, egos: Actors, given: Actors
     axis = 0 if b >= workers or s == 1 else 1
     n = (b, s)[axis]
     size = -(-n // min(workers, n))
-    if (default_parallel() if options.parallel is None else options.parallel) == 1:
+    one_per_call = (default_parallel() if options.parallel is None else options.parallel) == 1
+    if one_per_call:
         size = 1  # one map (or sample) per call: one program for every scene, any batch size
     parts = -(-n // size)
-    if parts == 1:
+    if parts == 1 and not one_per_call:
         return _sharded_call(keys, params, (maps, egos, given, caps), devices, kwargs)
     index = np.minimum(np.arange(parts * size), n - 1).reshape(parts, size)
     # Parts are cut and joined on the host (numpy): no compiled program per input's shape.
