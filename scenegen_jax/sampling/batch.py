@@ -176,7 +176,8 @@ def sample_split(keys: jax.Array, params: Any, maps, egos: Actors, given: Actors
     Scenes run one at a time are never left whole: a batch of one scene on several devices
     would otherwise run, padded, as a sharded program of its own, whose rounding differs
     (a box size a float step apart on a Zen 3, session 50). Each scene is the same on any
-    number of devices.
+    number of devices with the same threads (XLA:CPU splits loops by its thread pool, whose
+    size is the larger of the cores and the devices: README).
 
     Args:
       keys, params, maps, egos, given, caps, cfg, options, model: as in `sample_batch`.
