@@ -50,32 +50,21 @@ def random_params(cfg, key):
     return params
 
 
-def train_cmd(cache, workdir, steps, *extra):
-    """`scenegen train` of CFG's shapes on `cache` (saving every 2 steps) as a subprocess
-    command line, with `extra` options."""
+def train_args(cache, workdir, steps, *extra) -> list[str]:
+    """`scenegen train` of CFG's shapes on `cache` (saving every 2 steps) as the command's
+    arguments, with `extra` options: for `cli.main` in this process, where the programs that
+    other tests compiled for CFG are already traced, or for `train_cmd`."""
     overrides = [f"{k}={getattr(CFG, k)}"
                  for k in ("max_actors", "bptt_window", "batch_size", "hidden", "gn_groups")]
-    return [
-        sys.executable,
-        "-m",
-        "scenegen_jax.cli",
-        "train",
-        "--config",
-        "tiny",
-        "--data",
-        cache,
-        "--workdir",
-        workdir,
-        "--steps",
-        str(steps),
-        "--save-every",
-        "2",
-        "--log-every",
-        "2",
-        *extra,
-        "--set",
-        *overrides,
-    ]
+    return ["train", "--config", "tiny", "--data", cache, "--workdir", workdir,
+            "--steps", str(steps), "--save-every", "2", "--log-every", "2", *extra,
+            "--set", *overrides]
+
+
+def train_cmd(cache, workdir, steps, *extra) -> list[str]:
+    """`train_args` as a subprocess command line: for runs that are killed, or joined by
+    --distributed."""
+    return [sys.executable, "-m", "scenegen_jax.cli", *train_args(cache, workdir, steps, *extra)]
 
 
 def with_xla_flags(env, *flags: str) -> dict:

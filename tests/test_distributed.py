@@ -13,8 +13,9 @@ import time
 import jax
 import numpy as np
 import pytest
-from small import assert_same_adam_training, train_cmd, with_xla_flags
+from small import assert_same_adam_training, train_args, train_cmd, with_xla_flags
 
+from scenegen_jax import cli
 from scenegen_jax.backend import cpu_cores
 from scenegen_jax.data.safe_pickle import load_pickle
 from scenegen_jax.train.loop import load_trained
@@ -64,8 +65,7 @@ def _assert_same_training(workdir_a, workdir_b, step):
 def single_run(tiny_train_cache, tmp_path_factory) -> str:
     """A workdir trained by one process for 8 steps, every even step's checkpoint kept."""
     single = str(tmp_path_factory.mktemp("single") / "run")
-    subprocess.run(train_cmd(tiny_train_cache.path, single, 8, "--keep", "20"), check=True,
-                   env={**os.environ, "JAX_PLATFORMS": "cpu"}, capture_output=True)
+    cli.main(train_args(tiny_train_cache.path, single, 8, "--keep", "20"))  # in this process
     return single
 
 
@@ -107,7 +107,11 @@ def test_two_process_training_equals_one_process_and_resumes(
 
 
 def _launch(argv, env, logs, processes=1):
-    """`scenegen ARGV` as one process, or as `processes` joined by --distributed."""
+    """`scenegen ARGV` in this process (`env` None), as one process, or as `processes` joined
+    by --distributed."""
+    if env is None:
+        cli.main(argv)
+        return
     port = _free_port()
     procs = []
     for i in range(processes):
@@ -145,7 +149,7 @@ def test_score_and_sample_on_several_devices_and_two_processes(
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
     workdir = single_run
     devices = min(4, max(2, cpu_cores()))
-    runs = {"one": (env, 1),
+    runs = {"one": (None, 1),  # in this process, as single_run trained
             "devices": (with_xla_flags(
                 env, f"--xla_force_host_platform_device_count={devices}"), 1),
             "two_processes": (env, 2)}

@@ -18,11 +18,13 @@ from small import (
     CFG,
     assert_same_adam_training,
     random_params,
+    train_args,
     train_cmd,
     two_small_scenes,
     with_xla_flags,
 )
 
+from scenegen_jax import cli
 from scenegen_jax.config import get_config
 from scenegen_jax.likelihood.batch import Batch, check_batch, crop_batch, gather_batch
 from scenegen_jax.likelihood.unroll import unroll_terms
@@ -892,7 +894,7 @@ def test_killed_run_resumes_exactly(tiny_train_cache, tmp_path):
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
     steps = 10
     full = str(tmp_path / "full")
-    subprocess.run(train_cmd(cache, full, steps), check=True, env=env, capture_output=True)
+    cli.main(train_args(cache, full, steps))  # in this process: CFG's programs are traced
 
     killed = str(tmp_path / "killed")
     proc = subprocess.Popen(
@@ -913,7 +915,7 @@ def test_killed_run_resumes_exactly(tiny_train_cache, tmp_path):
     assert proc.returncode == -signal.SIGKILL
     step_at_kill, _ = _params(killed)
     assert 4 <= step_at_kill < steps
-    subprocess.run(train_cmd(cache, killed, steps), check=True, env=env, capture_output=True)
+    cli.main(train_args(cache, killed, steps))  # resumes from the killed process's checkpoint
 
     s_full, p_full = _params(full)
     s_killed, p_killed = _params(killed)
@@ -930,6 +932,7 @@ def test_sharded_step_equals_single_device(tiny_train_cache, tmp_path):
     script = f"""
 import jax, numpy as np
 from flax.traverse_util import flatten_dict
+from scenegen_jax import cli
 from scenegen_jax.config import get_config
 from scenegen_jax.data.cache import load_cache
 from scenegen_jax.backend import make_mesh

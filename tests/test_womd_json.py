@@ -164,6 +164,35 @@ def test_crossing_centerlines_are_intersection_lanes():
     assert [lane.is_intersection for lane in lanes] == [True, True, False]
 
 
+def test_lanes_outlined_together_are_each_outlined_alone():
+    """Lanes outlined in one call (their normals and rays stacked): each lane's boundaries
+    and surface are those of the lane outlined alone, with `np.gradient`'s tangents; given
+    half widths win where positive."""
+    rng = np.random.default_rng(0)
+    paths = [np.cumsum(rng.uniform(0.3, 1.0, (n, 2)), axis=0) + 30 * i
+             for i, n in enumerate((2, 3, 7, 12))]
+    given = np.where(rng.uniform(size=(7, 2)) < 0.5, 2.5, 0.0)
+    centers = [Centerline(i, "VEHICLE", p, given if len(p) == 7 else None)
+               for i, p in enumerate(paths)]
+    lines = [RoadLine(p + 1.2 * (j % 2 * 2 - 1), ROAD_EDGE if j % 3 else "SOLID_WHITE")
+             for j, p in enumerate(paths * 2)]
+    lanes, drivable = outline_lanes(centers, lines)
+    for c, lane, area in zip(centers, lanes, drivable, strict=True):
+        (alone,), (alone_area,) = outline_lanes([c], lines)
+        np.testing.assert_array_equal(lane.left, alone.left)
+        np.testing.assert_array_equal(lane.right, alone.right)
+        np.testing.assert_array_equal(area, alone_area)
+        tangent = np.gradient(c.points, axis=0)
+        tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+        half = np.linalg.norm(lane.left - c.points, axis=1)
+        np.testing.assert_allclose(lane.left - c.points,
+                                   half[:, None] * np.stack([-tangent[:, 1], tangent[:, 0]], 1),
+                                   atol=1e-12)
+        if c.half_widths is not None:
+            np.testing.assert_allclose(half[c.half_widths[:, 0] > 0], 2.5)
+    assert outline_lanes([], lines) == ((), ())
+
+
 # ---------------------------------------------------------------- the real files
 
 

@@ -51,24 +51,24 @@ class Centerline:
     is_intersection: bool | None = None
 
 
-def normals(center: np.ndarray) -> np.ndarray:
-    """[P, 2] unit normals to the left of travel of a centreline [P, 2] (y left)."""
-    tangent = np.gradient(np.asarray(center, np.float64), axis=0)
+def stacked_normals(lines: Sequence[np.ndarray]) -> np.ndarray:
+    """[sum P, 2] unit normals to the left of travel (y left) of the points of several
+    polylines (each [P, 2], P >= 2), stacked in order: each point's tangent is `np.gradient`'s
+    (central differences inside a line, one-sided at its two ends), the same floats."""
+    points = np.concatenate(lines).astype(np.float64)
+    sizes = np.array([len(p) for p in lines])
+    first = np.repeat(np.cumsum(sizes) - sizes, sizes)
+    index = np.arange(len(points))
+    before = np.maximum(index - 1, first)
+    after = np.minimum(index + 1, first + np.repeat(sizes, sizes) - 1)
+    tangent = (points[after] - points[before]) / (after - before)[:, None]
     tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
     return np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
 
 
-def offset_centerline(
-    center: np.ndarray, half_width_left: np.ndarray, half_width_right: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Left and right boundaries [P, 2] at the given per-point distances (m) from a centreline.
-
-    Args:
-      center: [P, 2] centreline, P >= 2, no repeated consecutive points.
-      half_width_left, half_width_right: [P] distances to the left / right boundary, m.
-    """
-    normal = normals(center)
-    return center + normal * half_width_left[:, None], center - normal * half_width_right[:, None]
+def normals(center: np.ndarray) -> np.ndarray:
+    """[P, 2] unit normals to the left of travel of a centreline [P, 2] (y left)."""
+    return stacked_normals([center])
 
 
 def _segments(lines: Sequence[np.ndarray]) -> np.ndarray:
@@ -105,16 +105,13 @@ def ray_distances(origins: np.ndarray, dirs: np.ndarray, max_m: float, segs: np.
     return out
 
 
-def _side_distances(centers: Sequence[np.ndarray], max_m: float, segs: np.ndarray) -> list:
-    """Per centreline, [P, 2] distances to the nearest segment crossed on its (left, right)."""
-    if not centers:
-        return []
-    points = np.concatenate(centers)
-    n = np.concatenate([normals(c) for c in centers])
-    # Both sides' rays in one call: one tree of the segments.
-    both = ray_distances(np.concatenate([points, points]), np.concatenate([n, -n]), max_m, segs)
-    both = both.reshape(2, len(points)).T
-    return np.split(both, np.cumsum([len(c) for c in centers])[:-1])
+def _side_distances(points: np.ndarray, normal: np.ndarray, max_m: float,
+                    segs: np.ndarray) -> np.ndarray:
+    """[N, 2] distances from points [N, 2] to the nearest segment crossed along their
+    normals [N, 2] (left) and against them (right): both sides' rays in one search."""
+    both = ray_distances(np.concatenate([points, points]), np.concatenate([normal, -normal]),
+                         max_m, segs)
+    return both.reshape(2, len(points)).T
 
 
 def _crossing_lanes(centers: Sequence[np.ndarray]) -> np.ndarray:
@@ -151,31 +148,39 @@ def outline_lanes(
     all_segs = _segments([line.points for line in lines])
     edge_segs = _segments([line.points for line in lines if line.mark == ROAD_EDGE])
     centers = [np.asarray(c.points, np.float64) for c in centerlines]
+    if not centers:
+        return (), ()
     crossing = _crossing_lanes(centers)
-    to_line = _side_distances(centers, MAX_HALF_WIDTH_M, all_segs)
-    to_edge = _side_distances(centers, MAX_EDGE_M, edge_segs)
+    points, normal = np.concatenate(centers), stacked_normals(centers)
+    to_line = _side_distances(points, normal, MAX_HALF_WIDTH_M, all_segs)
+    to_edge = _side_distances(points, normal, MAX_EDGE_M, edge_segs)
+    half = np.where(np.isfinite(to_line), np.maximum(to_line, MIN_HALF_WIDTH_M),
+                    DEFAULT_HALF_WIDTH_M)
+    given = np.concatenate([np.full((len(p), 2), np.nan) if c.half_widths is None
+                            else np.asarray(c.half_widths, np.float64)
+                            for c, p in zip(centerlines, centers, strict=True)])
+    half = np.where(np.isfinite(given) & (given > 0), given, half)
+    reach = np.where(np.isfinite(to_edge), np.maximum(to_edge, half), half)
+    # Boundaries at those distances along the normals: the lane's, and its drivable surface's.
+    left, right = points + normal * half[:, :1], points - normal * half[:, 1:]
+    outer_left, outer_right = points + normal * reach[:, :1], points - normal * reach[:, 1:]
+    split = np.cumsum([len(p) for p in centers])[:-1]
+    per_lane = (np.split(x, split) for x in (left, right, outer_left, outer_right))
     lanes, drivable = [], []
-    for c, center, crosses, half, edge in zip(
-        centerlines, centers, crossing, to_line, to_edge, strict=True
+    for c, crosses, lane_left, lane_right, out_left, out_right in zip(
+        centerlines, crossing, *per_lane, strict=True
     ):
-        half = np.where(np.isfinite(half), np.maximum(half, MIN_HALF_WIDTH_M), DEFAULT_HALF_WIDTH_M)
-        if c.half_widths is not None:
-            given = np.asarray(c.half_widths, np.float64)
-            half = np.where(np.isfinite(given) & (given > 0), given, half)
-        left, right = offset_centerline(center, half[:, 0], half[:, 1])
         is_intersection = bool(crosses) if c.is_intersection is None else c.is_intersection
         lanes.append(
             Lane(
                 id=c.id,
                 lane_type=c.lane_type,
-                left=left,
-                right=right,
+                left=lane_left,
+                right=lane_right,
                 is_intersection=is_intersection,
                 successors=c.successors,
                 predecessors=c.predecessors,
             )
         )
-        reach = np.where(np.isfinite(edge), np.maximum(edge, half), half)
-        outer_left, outer_right = offset_centerline(center, reach[:, 0], reach[:, 1])
-        drivable.append(np.concatenate([outer_left, outer_right[::-1]], axis=0))
+        drivable.append(np.concatenate([out_left, out_right[::-1]], axis=0))
     return tuple(lanes), tuple(drivable)
