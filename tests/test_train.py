@@ -932,7 +932,6 @@ def test_sharded_step_equals_single_device(tiny_train_cache, tmp_path):
     script = f"""
 import jax, numpy as np
 from flax.traverse_util import flatten_dict
-from scenegen_jax import cli
 from scenegen_jax.config import get_config
 from scenegen_jax.data.cache import load_cache
 from scenegen_jax.backend import make_mesh
