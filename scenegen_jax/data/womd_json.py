@@ -37,7 +37,13 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from scenegen_jax.data.surface import MAX_HALF_WIDTH_M, Centerline, normals, outline_lanes
+from scenegen_jax.data.surface import (
+    MAX_HALF_WIDTH_M,
+    Centerline,
+    normals,
+    outline_lanes,
+    stacked_normals,
+)
 from scenegen_jax.frame import Frame
 from scenegen_jax.scene import BICYCLIST, PEDESTRIAN, VEHICLE, wrap_angle
 from scenegen_jax.vector_map import ROAD_EDGE, RoadLine, VectorMap, rotation_matrix
@@ -220,8 +226,8 @@ def infer_line_marks(lines: Sequence[np.ndarray], centerlines: Sequence[Centerli
     if not centerlines:
         return ["UNKNOWN"] * len(lines)
     pts = np.concatenate([c.points for c in centerlines])
-    dirs = np.concatenate([np.gradient(c.points, axis=0) for c in centerlines])
-    dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
+    left = stacked_normals([c.points for c in centerlines])
+    dirs = np.stack([left[:, 1], -left[:, 0]], axis=1)  # the unit tangents
     marks = []
     for line in lines:
         mid = line[len(line) // 2] if len(line) > 2 else line.mean(axis=0)
