@@ -2,12 +2,16 @@
 good one (the whole state to resume training, or only some of its entries, e.g. the
 parameters, to score or sample).
 
-Every saved step carries the sha256 of each array (`CHECKSUM_FILE` in the step's folder),
-verified when it is restored, so flipped bytes inside a parameter file are caught rather than
-loaded. In a training run (`heal=True`) a step that does not restore or verify is set aside:
-moved to `<checkpoints>.damaged/<step>-<time>` with a warning naming both paths, so that it
-neither blocks the save of the same step later nor takes one of the `keep` slots. Orbax's
-temporary folders left by a killed save are removed when a training run opens the folder.
+Every saved step carries the sha256 of each array and of each file orbax wrote (`CHECKSUM_FILE`
+in the step's folder). The files are checked before orbax opens them, so a damaged file is
+named and skipped without orbax parsing it (a read that failed half way left orbax's other
+reads unfinished, reported later as "Exception ignored" tracebacks); the arrays are checked
+after the restore, so flipped bytes inside a parameter file are caught rather than loaded
+(steps saved before the file sums verify their arrays only). In a training run (`heal=True`) a
+step that does not restore or verify is set aside: moved to
+`<checkpoints>.damaged/<step>-<time>` with a warning naming both paths, so that it neither
+blocks the save of the same step later nor takes one of the `keep` slots. Orbax's temporary
+folders left by a killed save are removed when a training run opens the folder.
 
 In a multi-process job every process saves and restores its part of the same checkpoint
 (orbax coordinates them), and process 0 alone writes the checksums and moves or removes
@@ -31,6 +35,7 @@ from scenegen_jax.backend import is_main_process, sync_processes
 
 log = logging.getLogger(__name__)
 CHECKSUM_FILE = "scenegen_sha256.json"
+FILE_KEY = "file:"  # CHECKSUM_FILE's keys of file sums; the arrays' are their tree paths
 TMP_MARKER = ".orbax-checkpoint-tmp"
 
 
@@ -44,6 +49,20 @@ def tree_checksums(tree) -> dict[str, str]:
         h = hashlib.sha256(f"{x.dtype.str}{x.shape}".encode())
         h.update(x.tobytes())
         out[jax.tree_util.keystr(path)] = h.hexdigest()
+    return out
+
+
+def file_checksums(directory: str) -> dict[str, str]:
+    """sha256 of every file under a saved step's folder but the checksums' own, keyed
+    FILE_KEY + its path relative to the folder."""
+    out = {}
+    for root, _, names in os.walk(directory):
+        for name in names:
+            path = os.path.join(root, name)
+            rel = os.path.relpath(path, directory)
+            if not rel.startswith(CHECKSUM_FILE):
+                with open(path, "rb") as f:
+                    out[FILE_KEY + rel] = hashlib.file_digest(f, "sha256").hexdigest()
     return out
 
 
@@ -96,25 +115,46 @@ class Checkpointer:
         if saved:
             self.manager.wait_until_finished()
             if is_main_process():
-                path = os.path.join(self.directory, str(step), CHECKSUM_FILE)
+                folder = os.path.join(self.directory, str(step))
+                path = os.path.join(folder, CHECKSUM_FILE)
                 with open(path + ".tmp", "w") as f:
-                    json.dump(tree_checksums(state._asdict()), f)
+                    json.dump({**tree_checksums(state._asdict()), **file_checksums(folder)}, f)
                 os.replace(path + ".tmp", path)
             sync_processes(f"checksums of step {step} written")
         return saved
 
-    def _verify(self, step: int, restored: dict) -> None:
-        """Checks the restored arrays against the checksums saved with them (only the saved
-        entries that were restored, for a partial restore)."""
+    def _checksums(self, step: int) -> dict | None:
+        """The checksums saved with `step`; None (with a warning) for a step saved without."""
         path = os.path.join(self.directory, str(step), CHECKSUM_FILE)
         if not os.path.isfile(path):
             log.warning("%s: no checksums (saved by an older version); not verified", path)
-            return
+            return None
         try:
             with open(path) as f:
                 want = json.load(f)
         except (OSError, json.JSONDecodeError) as e:
             raise DamagedCheckpoint(f"{path}: unreadable checksums ({e})") from e
+        if not isinstance(want, dict):
+            raise DamagedCheckpoint(f"{path}: checksums are not a JSON object")
+        return want
+
+    def _verify_files(self, step: int, want: dict) -> None:
+        """Checks the step's saved files against their sums (before orbax reads them): a
+        missing or changed file is named; files added since are left alone."""
+        folder = os.path.join(self.directory, str(step))
+        want = {k: v for k, v in want.items() if k.startswith(FILE_KEY)}
+        if not want:
+            return  # saved before file sums
+        got = file_checksums(folder)
+        bad = sorted(k[len(FILE_KEY):] for k in want if want[k] != got.get(k))
+        if bad:
+            raise DamagedCheckpoint(f"{folder}: files missing or changed since the save: "
+                                    f"{bad[:5]}")
+
+    def _verify(self, step: int, restored: dict, want: dict) -> None:
+        """Checks the restored arrays against the checksums saved with them (only the saved
+        entries that were restored, for a partial restore)."""
+        path = os.path.join(self.directory, str(step), CHECKSUM_FILE)
         got = tree_checksums(restored)
         entries = tuple(f"[{k!r}]" for k in restored)
         want = {k: v for k, v in want.items() if k.startswith(entries)}
@@ -165,8 +205,12 @@ class Checkpointer:
             steps = [step]
         for step in steps:
             try:
+                want = self._checksums(step)
+                if want is not None:
+                    self._verify_files(step, want)
                 restored = self.manager.restore(step, args=args)
-                self._verify(step, restored)
+                if want is not None:
+                    self._verify(step, restored, want)
             except Exception as e:  # orbax raises many types for damaged files
                 log.warning(
                     "%s: checkpoint at step %d is unreadable or damaged (%s: %s); trying the "

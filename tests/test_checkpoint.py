@@ -1,6 +1,7 @@
 """Checkpoints that heal and verify (real scenes, small tiny config, in process): a damaged
 newest checkpoint is set aside and the rerun finishes at the uninterrupted run's parameters;
-changed array bytes are caught by the checksums; one metrics row per step after a resume;
+changed array bytes are caught by the checksums, changed or missing files before orbax reads
+them; one metrics row per step after a resume;
 unfinished saves are removed."""
 
 from __future__ import annotations
@@ -107,6 +108,51 @@ def test_changed_array_bytes_are_caught_by_the_checksums(tiny_train_cache, eight
     train(CFG, tiny_train_cache.path, workdir, 4, save_every=EVERY, keep=2, progress=False)
     assert _steps(workdir) == [1, 4]
     assert len(os.listdir(os.path.join(workdir, "checkpoints.damaged"))) == 2
+
+
+def test_a_changed_or_missing_file_is_named_before_orbax_reads_it(eight_steps, tmp_path,
+                                                                   caplog, monkeypatch):
+    import hashlib
+
+    import orbax.checkpoint as ocp
+
+    workdir = _copy(eight_steps, tmp_path)
+    folder = os.path.join(workdir, "checkpoints", "8")
+    with open(os.path.join(folder, CHECKSUM_FILE)) as f:
+        sums = json.load(f)
+    # Every file orbax wrote has its sha256 beside the arrays' (hashlib on the whole file).
+    files = sorted(os.path.relpath(os.path.join(r, n), folder)
+                   for r, _, names in os.walk(folder) for n in names if n != CHECKSUM_FILE)
+    assert sorted(k[len("file:"):] for k in sums if k.startswith("file:")) == files
+    for rel in files:
+        with open(os.path.join(folder, rel), "rb") as f:
+            assert sums["file:" + rel] == hashlib.sha256(f.read()).hexdigest(), rel
+    opened = []
+    restore = ocp.CheckpointManager.restore
+
+    def recorded(self, step, **kwargs):
+        opened.append(step)
+        return restore(self, step, **kwargs)
+
+    monkeypatch.setattr(ocp.CheckpointManager, "restore", recorded)
+    data = os.path.join("default", "ocdbt.process_0", "d")
+    big = max(os.listdir(os.path.join(folder, data)),
+              key=lambda n: os.path.getsize(os.path.join(folder, data, n)))
+    changed = os.path.join(data, big)
+    raw = bytearray(open(os.path.join(folder, changed), "rb").read())
+    raw[len(raw) // 2] ^= 0xFF
+    open(os.path.join(folder, changed), "wb").write(bytes(raw))
+    assert int(load_trained(workdir)[1].step) == 4
+    assert opened == [4]  # orbax never opened step 8
+    assert "files missing or changed since the save" in caplog.text and changed in caplog.text
+    # A deleted file is named the same way.
+    caplog.clear()
+    shutil.rmtree(os.path.join(workdir, "checkpoints", "4"))
+    shutil.copytree(os.path.join(eight_steps, "checkpoints", "8"), folder, dirs_exist_ok=True)
+    os.remove(os.path.join(folder, "default", "_METADATA"))
+    with pytest.raises(FileNotFoundError, match="no readable checkpoint"):
+        load_trained(workdir)
+    assert os.path.join("default", "_METADATA") in caplog.text and opened == [4]
 
 
 def test_unfinished_saves_are_removed(tmp_path):
