@@ -148,8 +148,9 @@ class Checkpointer:
         got = file_checksums(folder)
         bad = sorted(k[len(FILE_KEY):] for k in want if want[k] != got.get(k))
         if bad:
-            raise DamagedCheckpoint(f"{folder}: files missing or changed since the save: "
-                                    f"{bad[:5]}")
+            # The file names first: the warning cuts the message at 200 characters.
+            raise DamagedCheckpoint(f"files missing or changed since the save: {bad[:5]} "
+                                    f"(in {folder})")
 
     def _verify(self, step: int, restored: dict, want: dict) -> None:
         """Checks the restored arrays against the checksums saved with them (only the saved
