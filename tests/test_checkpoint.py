@@ -51,6 +51,19 @@ def _assert_same(a, b):
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), atol=1e-6, rtol=0)
 
 
+def _flip_a_byte_of_the_largest_data_file(folder) -> str:
+    """Flips the middle byte of the largest array data file of a saved step's folder; returns
+    that file's path relative to the folder."""
+    data = os.path.join("default", "ocdbt.process_0", "d")
+    big = max(os.listdir(os.path.join(folder, data)),
+              key=lambda n: os.path.getsize(os.path.join(folder, data, n)))
+    rel = os.path.join(data, big)
+    raw = bytearray(open(os.path.join(folder, rel), "rb").read())
+    raw[len(raw) // 2] ^= 0xFF
+    open(os.path.join(folder, rel), "wb").write(bytes(raw))
+    return rel
+
+
 def _steps(workdir):
     return sorted(int(d) for d in os.listdir(os.path.join(workdir, "checkpoints")) if d.isdigit())
 
@@ -97,11 +110,7 @@ def test_changed_array_bytes_are_caught_by_the_checksums(tiny_train_cache, eight
     assert "arrays differ from their checksums" in caplog.text and key in caplog.text
     assert _steps(workdir) == [4, 8]
     # ... and raw bytes flipped in the largest data file are caught too (by orbax or by us).
-    data = os.path.join(workdir, "checkpoints", "4", "default", "ocdbt.process_0", "d")
-    big = max((os.path.join(data, n) for n in os.listdir(data)), key=os.path.getsize)
-    raw = bytearray(open(big, "rb").read())
-    raw[len(raw) // 2] ^= 0xFF
-    open(big, "wb").write(bytes(raw))
+    _flip_a_byte_of_the_largest_data_file(os.path.join(workdir, "checkpoints", "4"))
     with pytest.raises(FileNotFoundError, match="no readable checkpoint"):
         load_trained(workdir)
     # A training run sets both aside and starts over from scratch.
@@ -135,13 +144,7 @@ def test_a_changed_or_missing_file_is_named_before_orbax_reads_it(eight_steps, t
         return restore(self, step, **kwargs)
 
     monkeypatch.setattr(ocp.CheckpointManager, "restore", recorded)
-    data = os.path.join("default", "ocdbt.process_0", "d")
-    big = max(os.listdir(os.path.join(folder, data)),
-              key=lambda n: os.path.getsize(os.path.join(folder, data, n)))
-    changed = os.path.join(data, big)
-    raw = bytearray(open(os.path.join(folder, changed), "rb").read())
-    raw[len(raw) // 2] ^= 0xFF
-    open(os.path.join(folder, changed), "wb").write(bytes(raw))
+    changed = _flip_a_byte_of_the_largest_data_file(folder)
     assert int(load_trained(workdir)[1].step) == 4
     assert opened == [4]  # orbax never opened step 8
     assert "files missing or changed since the save" in caplog.text and changed in caplog.text
