@@ -214,6 +214,17 @@ def test_truncation_cuts_gradients_between_windows(tiny_train_cache, small_scene
     # Every step of both windows contributes: the second window's terms are non-zero.
     t, valid, _ = jax.jit(lambda p: unroll_terms(p, cfg, maps, scene, None))(params)
     assert np.all(np.asarray(t["class"])[np.asarray(valid)] != 0)
+    # Without a gradient (the scorer) the steps run as one window: the program of a single
+    # window of all 8 steps, and the same terms.
+    def scorer(c):
+        return jax.jit(lambda p: unroll_terms(p, c, maps, scene, None, differentiated=False))
+
+    one_window = cfg.replace(bptt_window=2 * w)
+    assert scorer(cfg).lower(params).as_text() == scorer(one_window).lower(params).as_text()
+    scored, scored_valid, _ = scorer(cfg)(params)
+    np.testing.assert_array_equal(scored_valid, valid)
+    for k in t:
+        np.testing.assert_allclose(scored[k], t[k], rtol=1e-5, atol=1e-5)
 
 
 def test_a_truncated_scene_has_no_stop_token(tiny_train_cache, small_scenes):

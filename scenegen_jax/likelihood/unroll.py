@@ -11,8 +11,10 @@ window's on accelerators, run as a `lax.scan` (`backend.compiled_step_loop`): a 
 compiled instead of a window's worth. Windows run through `scan_windows`: a Python loop on
 CPU, a `lax.scan` (one window compiled) on accelerators. The train step takes each window's
 gradient right after that window (`unroll_terms_and_grads`), so it holds one window's
-activations. Every window always runs, so `cfg.max_actors` should fit the data (overflow is
-counted).
+activations. An unroll without a gradient (the scorer) has nothing to truncate: its steps run
+as one window, so that one compiled loop serves the whole scene (the shipped `cpu` model's two
+windows compiled in 12.0 s, one in 8.8 s; bench/README.md, session 53). Every window always
+runs, so `cfg.max_actors` should fit the data (overflow is counted).
 
 Inside a window (the fast path; measurements in bench/README.md; `_unrolled_steps` in the CPU
 train step, elsewhere `_scanned_steps`, the same mathematics as a loop over the steps):
@@ -370,12 +372,15 @@ def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | 
       maps: [B, H, W, Cm] map channels.
       scene: batched Scene (actors [B, N] canonical, ego [B]).
       hard_negatives: location normaliser size for training, None for the full softmax.
-      differentiated: whether the caller takes a gradient through it (the steps' loop form
-        depends on it: `backend.compiled_step_loop`); the values do not.
+      differentiated: whether the caller takes a gradient through it: the steps' loop form
+        depends on it (`backend.compiled_step_loop`), and without a gradient every step runs
+        in one window; the values do not.
     Returns:
       (terms: dict name -> [B, T] log-likelihoods, zero at padding steps; step_valid [B, T];
       step_cls [B, T] with STOP at the stop step), T = windows * cfg.bptt_window.
     """
+    if not differentiated:  # no gradient to truncate: the same T steps as one window
+        cfg = cfg.replace(bptt_window=num_windows(cfg) * cfg.bptt_window)
     scenes = _scenes(params, cfg, maps, scene)
     map_gates = SceneGenNet(cfg).apply({"params": params}, maps, method=SceneGenNet.map_gates)
 
