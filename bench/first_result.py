@@ -81,6 +81,7 @@ def ours(kind: str, config: str, grid: int, model: str | None) -> dict:
     jax.config.update("jax_enable_compilation_cache", False)
     from synthetic import synthetic_batch
 
+    from scenegen_jax.allocator import active
     from scenegen_jax.backend import concurrent_map, default_workers, scoring_compiler_options
     from scenegen_jax.eval.nll import score_batch
     from scenegen_jax.pretrained import load_pretrained
@@ -94,7 +95,7 @@ def ours(kind: str, config: str, grid: int, model: str | None) -> dict:
     else:
         cfg, params, _ = load_pretrained(model)
     out = {"what": f"first_{kind}", "ours": True, "config": cfg.name, "grid": cfg.grid_size,
-           "max_actors": cfg.max_actors, "imports_s": t_import}
+           "max_actors": cfg.max_actors, "imports_s": t_import, "allocator": active()}
     if kind == "train":
         state = init_state(cfg)
         batch = jax.device_put(synthetic_batch(cfg, cfg.batch_size, cfg.max_actors))
@@ -180,6 +181,10 @@ def main() -> None:
         return
     if a.kind is None:
         p.error(f"{a.side} needs a kind: train, score or sample")
+    if a.side == "ours":  # as the `scenegen` command starts: again, on tcmalloc if installed
+        from scenegen_jax.allocator import reexec_with_tcmalloc
+
+        reexec_with_tcmalloc()
     row = ours(a.kind, a.config, a.grid, a.model) if a.side == "ours" else ref(a.kind, a.grid)
     print("RESULT " + json.dumps(row), flush=True)
 

@@ -186,6 +186,7 @@ def run_case(args) -> dict:
     from synthetic import synthetic_batch
 
     import scenegen_jax.backend as backend
+    from scenegen_jax.allocator import active
     from scenegen_jax.backend import concurrent_map, scoring_compiler_options
     from scenegen_jax.eval.nll import score_batch
     from scenegen_jax.train.step import compile_train_step, init_state
@@ -196,7 +197,8 @@ def run_case(args) -> dict:
         backend.compiled_step_loop = lambda differentiated=True: compiled
     c_in = len(cfg.map_channels) + ACTOR_CHANNELS
     out = {"what": args.kind, "ours": True, "config": cfg.name, "grid": cfg.grid_size,
-           "hidden": cfg.hidden, "batch": args.batch, "map_ch": len(cfg.map_channels)}
+           "hidden": cfg.hidden, "batch": args.batch, "map_ch": len(cfg.map_channels),
+           "allocator": active()}
     if args.kind != "sample" and backend.compiled_step_loop(args.kind == "train"):
         out.update(step_loop="compiled", step_loop_unroll=backend.STEP_LOOP_UNROLL)
     elif args.kind != "sample":
@@ -647,9 +649,16 @@ def cpu_model() -> str:
 def main_all(args) -> None:
     import jax
 
+    from scenegen_jax.allocator import find_tcmalloc
+
+    allocator = "tcmalloc" if find_tcmalloc(os.environ) else "system"
+    if allocator == "system" and args.only != "torch":
+        print("bench: no tcmalloc installed, so ours runs on glibc's malloc, 1.3-1.7x slower "
+              "at grid 320 (apt install libtcmalloc-minimal4; scenegen_jax/allocator.py)",
+              file=sys.stderr)
     rows: list[dict] = [{
         "what": "env", "machine": platform.processor() or platform.machine(),
-        **cpu_fields(),
+        **cpu_fields(), "allocator": allocator,
         "cpus": os.cpu_count(), "python": platform.python_version(), "jax": jax.__version__,
         **device_fields(), "date": time.strftime("%Y-%m-%d %H:%M:%S"),
     }]
@@ -724,6 +733,9 @@ def main() -> None:
         rows = first_results(args)
         print(json.dumps([{k: v for k, v in r.items() if k != "cmd"} for r in rows], indent=1))
     elif args.cmd == "case":
+        from scenegen_jax.allocator import reexec_with_tcmalloc
+
+        reexec_with_tcmalloc()  # as the `scenegen` command runs ours: on tcmalloc if installed
         print("RESULT " + json.dumps(run_case(args)), flush=True)
     else:
         main_all(args)

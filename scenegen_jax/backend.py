@@ -6,9 +6,9 @@ large ones in row bands, and in its library's form inside a differentiated compi
 which runs on XLA:CPU only where the tests run the accelerators' loops), how training
 starts (on the train step split into programs of a few steps while the one-program step
 compiles), the compiler options of the parameter initialisation, the train step, the scorer
-and the sampler, how many calls run at once and how many scenes are vmapped together, the
-device mesh, and returning the compiler's freed host memory. Also where a multi-process job
-starts and which process writes.
+and the sampler, how many calls run at once and how many scenes are vmapped together, and the
+device mesh. Also where a multi-process job starts and which process writes. (The host's
+allocator, and handing the compiler's freed memory back to the OS: `allocator`.)
 
 What differs between CPUs, read once at start-up (`cpu_vendor` from /proc/cpuinfo,
 `cpu_has_avx512` from CPUID): which library runs the train step's convolutions and the row
@@ -27,7 +27,6 @@ at a time.
 from __future__ import annotations
 
 import concurrent.futures
-import ctypes
 import functools
 import os
 from collections.abc import Callable, Iterable, Iterator
@@ -374,18 +373,6 @@ def make_mesh(devices=None) -> Mesh:
     processes, every process's devices."""
     devices = np.asarray(jax.devices() if devices is None else devices)
     return Mesh(devices, (DATA_AXIS,))
-
-
-def release_freed_memory() -> None:
-    """Hands freed heap pages back to the OS (glibc's `malloc_trim`; a no-op elsewhere).
-
-    Compiling the train step at grid 128 leaves about 0.6 GiB of the compiler's freed memory
-    resident; returned before the first step, it no longer adds to the step's peak.
-    """
-    try:
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):
-        pass
 
 
 def concurrent_map(fn: Callable[[Any], Any], items: Iterable, workers: int) -> Iterator:

@@ -6,18 +6,20 @@ import argparse
 import logging
 import os
 
-from scenegen_jax.cli import data, model, sample, score
-
-COMMAND_MODULES = (data, model, score, sample)
+from scenegen_jax.allocator import reexec_with_tcmalloc
 
 
 def build_parser() -> argparse.ArgumentParser:
+    # The subcommands' modules (numpy and more) load here, not with this package: the
+    # command starts itself again on tcmalloc (`main`) before it loads them.
+    from scenegen_jax.cli import data, model, sample, score
+
     p = argparse.ArgumentParser(prog="scenegen", description=__doc__)
     p.add_argument(
         "-v", "--verbose", action="store_true", help="debug logging; tracebacks with errors"
     )
     sub = p.add_subparsers(dest="command", required=True)
-    for module in COMMAND_MODULES:
+    for module in (data, model, score, sample):
         module.add_parsers(sub)
     return p
 
@@ -46,7 +48,11 @@ def enable_compile_cache() -> str | None:
 
 
 def main(argv: list[str] | None = None) -> None:
+    if argv is None:  # the `scenegen` command itself: on tcmalloc where it is installed
+        reexec_with_tcmalloc()
     args = build_parser().parse_args(argv)
+    from scenegen_jax.cli import model, sample, score
+
     if args.func in (model.cmd_train, score.cmd_score, sample.cmd_sample, score.cmd_evaluate):
         enable_compile_cache()
     logging.basicConfig(

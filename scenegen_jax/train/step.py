@@ -14,13 +14,13 @@ from jax.flatten_util import ravel_pytree
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
+from scenegen_jax.allocator import release_freed_memory
 from scenegen_jax.backend import (
     DATA_AXIS,
     QUICK_START_STEPS,
     compiled_init,
     quick_start_training,
     quick_train_compiler_options,
-    release_freed_memory,
     train_compiler_options,
 )
 from scenegen_jax.config import LAYER_GROUPS, Config
