@@ -3,9 +3,10 @@
 XLA:CPU allocates a call's temporaries afresh at every call, about 5 GiB for the train step
 at the paper's grid (320, T 25). glibc's malloc maps each allocation above 32 MiB with
 `mmap` and unmaps it on `free`, so every call faults all of those pages in again: 6.2 M minor
-faults and 67 s of kernel time over four such steps, on two cores that also run the step.
-tcmalloc keeps freed pages for the next call: 1.9 M faults, 26 s, and the step 1.3-1.7x
-faster (bench/README.md, session 58). Programs of the `tiny` and `cpu` presets gain less.
+faults and 67 s of kernel time in a process that compiles it and runs it four times, on two
+cores that also run the step. tcmalloc keeps freed pages for the next call: 1.9 M faults,
+26 s, and the step 1.3-1.7x faster (bench/README.md, session 58; at T 5 the gain is within
+the spread).
 
 A process's allocator is fixed when it starts, so the `scenegen` command (and `bench/`'s
 timing of ours) starts itself again once, at once, with the library in LD_PRELOAD

@@ -72,3 +72,12 @@ def test_the_process_starts_again_on_tcmalloc():
     lines = _child({allocator.SWITCH: "system"})
     assert lines[0] == lines[1] and lines[2] == "system"
 
+
+
+def test_the_command_names_a_missing_library(tmp_path):
+    missing = str(tmp_path / "libtcmalloc_minimal.so.4")
+    env = {**os.environ, allocator.SWITCH: missing}
+    out = subprocess.run([sys.executable, "-m", "scenegen_jax.cli", "models"], env=env,
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2
+    assert f"{allocator.SWITCH}={missing}: no such file" in out.stderr

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import sys
 
 from scenegen_jax.allocator import reexec_with_tcmalloc
 
@@ -49,7 +50,11 @@ def enable_compile_cache() -> str | None:
 
 def main(argv: list[str] | None = None) -> None:
     if argv is None:  # the `scenegen` command itself: on tcmalloc where it is installed
-        reexec_with_tcmalloc()
+        try:
+            reexec_with_tcmalloc()
+        except FileNotFoundError as e:  # SCENEGEN_MALLOC names no file: bad input, exit 2
+            print(f"scenegen: {e}", file=sys.stderr)
+            raise SystemExit(2) from e
     args = build_parser().parse_args(argv)
     from scenegen_jax.cli import model, sample, score
 
