@@ -654,7 +654,7 @@ def main_all(args) -> None:
     allocator = "tcmalloc" if find_tcmalloc(os.environ) else "system"
     if allocator == "system" and args.only != "torch":
         print("bench: ours runs on glibc's malloc (no tcmalloc found, or SCENEGEN_MALLOC="
-              "system), 1.3-1.7x slower at grid 320, T 25 (apt install libtcmalloc-minimal4; "
+              "system), up to 1.7x slower at grid 320, T 25 (apt install libtcmalloc-minimal4; "
               "scenegen_jax/allocator.py)", file=sys.stderr)
     rows: list[dict] = [{
         "what": "env", "machine": platform.processor() or platform.machine(),

@@ -5,8 +5,8 @@ at the paper's grid (320, T 25). glibc's malloc maps each allocation above 32 Mi
 `mmap` and unmaps it on `free`, so every call faults all of those pages in again: 6.2 M minor
 faults and 67 s of kernel time in a process that compiles it and runs it four times, on two
 cores that also run the step. tcmalloc keeps freed pages for the next call: 1.9 M faults,
-26 s, and the step 1.3-1.7x faster (bench/README.md, session 58; at T 5 the gain is within
-the spread).
+26 s, and the step 1.03-1.7x faster, the more the dearer the host's faults (bench/README.md,
+session 58; at T 5 the gain is within the spread).
 
 A process's allocator is fixed when it starts, so the `scenegen` command (and `bench/`'s
 timing of ours) starts itself again once, at once, with the library in LD_PRELOAD
