@@ -55,7 +55,8 @@ def preload_env(env: Mapping[str, str]) -> dict[str, str] | None:
     already (so a process started with it never starts itself again)."""
     library = find_tcmalloc(env)
     preloaded = env.get("LD_PRELOAD", "").replace(":", " ").split()
-    if library is None or any(os.path.basename(p).startswith("libtcmalloc") for p in preloaded):
+    if library is None or library in preloaded or any(
+            os.path.basename(p).startswith("libtcmalloc") for p in preloaded):
         return None
     return {**QUIET, **env, "LD_PRELOAD": " ".join([library, *preloaded])}
 

@@ -14,6 +14,14 @@ from scenegen_jax import allocator
 INSTALLED = allocator.find_tcmalloc({})
 
 
+@pytest.fixture
+def lib(tmp_path):
+    """A file standing for a tcmalloc build that SCENEGEN_MALLOC names."""
+    path = tmp_path / "libtcmalloc_minimal.so.4"
+    path.write_bytes(b"")
+    return path
+
+
 def test_system_keeps_glibc():
     for value in ("system", "SYSTEM", "glibc", "off"):
         assert allocator.find_tcmalloc({allocator.SWITCH: value}) is None
@@ -25,9 +33,7 @@ def test_a_missing_path_names_the_switch(tmp_path):
         allocator.find_tcmalloc({allocator.SWITCH: str(tmp_path / "libtcmalloc.so")})
 
 
-def test_preload_goes_first_and_keeps_the_rest(tmp_path):
-    lib = tmp_path / "libtcmalloc_minimal.so.4"
-    lib.write_bytes(b"")
+def test_preload_goes_first_and_keeps_the_rest(lib):
     env = allocator.preload_env({allocator.SWITCH: str(lib), "LD_PRELOAD": "/a/libx.so:/b/liby.so",
                                  "KEEP": "1"})
     assert env["LD_PRELOAD"] == f"{lib} /a/libx.so /b/liby.so"
@@ -35,17 +41,19 @@ def test_preload_goes_first_and_keeps_the_rest(tmp_path):
     assert int(env["TCMALLOC_LARGE_ALLOC_REPORT_THRESHOLD"]) > 2**40
 
 
-def test_never_twice(tmp_path):
-    """A process that has a tcmalloc preloaded (ours or the user's own) is not started again."""
-    lib = tmp_path / "libtcmalloc_minimal.so.4"
-    lib.write_bytes(b"")
+def test_never_twice(lib, tmp_path):
+    """A process that has a tcmalloc preloaded (ours or the user's own) is not started again,
+    whatever SCENEGEN_MALLOC's file is called."""
     for preloaded in (str(lib), "libtcmalloc.so.4", "/x/liba.so /opt/libtcmalloc_minimal.so"):
         assert allocator.preload_env({allocator.SWITCH: str(lib), "LD_PRELOAD": preloaded}) is None
+    other = tmp_path / "my_allocator.so"
+    other.write_bytes(b"")
+    env = allocator.preload_env({allocator.SWITCH: str(other)})
+    assert env["LD_PRELOAD"] == str(other)
+    assert allocator.preload_env({**env, allocator.SWITCH: str(other)}) is None
 
 
-def test_a_user_threshold_is_kept(tmp_path):
-    lib = tmp_path / "libtcmalloc_minimal.so.4"
-    lib.write_bytes(b"")
+def test_a_user_threshold_is_kept(lib):
     env = allocator.preload_env({allocator.SWITCH: str(lib),
                                  "TCMALLOC_LARGE_ALLOC_REPORT_THRESHOLD": "1000"})
     assert env["TCMALLOC_LARGE_ALLOC_REPORT_THRESHOLD"] == "1000"
@@ -71,7 +79,6 @@ def test_the_process_starts_again_on_tcmalloc():
     assert lines[0] == lines[1] == lines[2] and lines[3] == "tcmalloc"
     lines = _child({allocator.SWITCH: "system"})
     assert lines[0] == lines[1] and lines[2] == "system"
-
 
 
 def test_the_command_names_a_missing_library(tmp_path):
