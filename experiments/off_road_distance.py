@@ -14,7 +14,13 @@ cache's own (real) actors; `--class` picks another class than vehicles, for exam
         --class bicyclist
 
 `distance_m_percentiles` are over the actors off the drivable area, `all_distance_m_percentiles`
-over every counted actor (0 on the drivable area).
+over every counted actor (0 on the drivable area). `--by-order 4` also splits the share on the
+drivable area by each actor's place among its scene's actors of the class in canonical order
+(ascending bin of the model's grid: the order in which the model samples them), in groups of
+4 (the first 4, the next 4, ...; the last group holds the rest):
+
+    .venv/bin/python experiments/off_road_distance.py --cache runs/cache_cpu_womdjson_val \
+        --samples OUT/scenes.jsonl --by-order 4
 """
 
 from __future__ import annotations
@@ -70,6 +76,33 @@ def road_distances(cache, scenes) -> tuple[np.ndarray, float]:
     return np.array(out), m
 
 
+def canonical_positions(cache, positions: list) -> list:
+    """`positions` sorted by ascending row-major bin of the cache's model grid (the canonical
+    order of `scenegen_jax.scene`; the grid is centred on the ego)."""
+    m, size = float(cache.meta["m_per_px"]), int(cache.meta["grid_size"])
+    half = size * m / 2
+    def key(p):
+        row = np.clip((half - p[1]) // m, 0, size - 1)
+        return row * size + np.clip((p[0] + half) // m, 0, size - 1)
+    return sorted(positions, key=key)
+
+
+def by_order(cache, scenes, group: int, groups: int = 4) -> list[dict]:
+    """The share on the drivable area of the actors at each place in canonical order, in
+    `groups` groups of `group` places (the last one open-ended)."""
+    parts = [[] for _ in range(groups)]
+    for map_index, positions in scenes:
+        for k, p in enumerate(canonical_positions(cache, positions)):
+            parts[min(k // group, groups - 1)].append((map_index, [p]))
+    rows = []
+    for g, part in enumerate(parts):
+        d, _ = road_distances(cache, part)
+        last = "" if g == groups - 1 else g * group + group
+        rows.append({"places": f"{g * group + 1}-{last}", "actors": len(d),
+                     "on_drivable_share": round(float(np.mean(d == 0)), 4) if len(d) else None})
+    return rows
+
+
 def percentiles(d: np.ndarray) -> dict:
     pct = np.percentile(d, PERCENTILES).round(1).tolist() if len(d) else [None] * len(PERCENTILES)
     return dict(zip(map(str, PERCENTILES), pct, strict=True))
@@ -80,10 +113,12 @@ def main() -> None:
     parser.add_argument("--cache", required=True)
     parser.add_argument("--samples", help="sampled scenes (JSONL); default: the cache's own")
     parser.add_argument("--class", dest="cls", default=CLASS_NAMES[VEHICLE], choices=CLASS_NAMES)
+    parser.add_argument("--by-order", type=int, metavar="N",
+                        help="also the share by place in canonical order, in groups of N")
     args = parser.parse_args()
     cache = load_cache(args.cache)
-    scenes = (sampled_scenes(args.samples, args.cls) if args.samples
-              else real_scenes(cache, args.cls))
+    scenes = list(sampled_scenes(args.samples, args.cls) if args.samples
+                  else real_scenes(cache, args.cls))
     every, m = road_distances(cache, scenes)
     d = every[every > 0]
     print(json.dumps({"class": args.cls, "actors": len(every), "off_drivable": len(d),
@@ -92,7 +127,9 @@ def main() -> None:
                       "all_distance_m_percentiles": percentiles(every),
                       # a neighbouring pixel, diagonals included
                       "share_within_one_pixel": round(float(np.mean(d <= m * 2**0.5)), 4)
-                      if len(d) else None}))
+                      if len(d) else None,
+                      **({"by_order": by_order(cache, scenes, args.by_order)}
+                         if args.by_order else {})}))
 
 
 if __name__ == "__main__":
