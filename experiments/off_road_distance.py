@@ -31,9 +31,10 @@ import json
 import numpy as np
 from scipy.ndimage import distance_transform_edt
 
+from scenegen_jax.config import Config
 from scenegen_jax.data.cache import load_cache
 from scenegen_jax.raster.map import ALL_MAP_CHANNELS
-from scenegen_jax.scene import CLASS_NAMES, VEHICLE
+from scenegen_jax.scene import CLASS_NAMES, VEHICLE, bin_index
 
 RADIUS_M = 40.0
 PERCENTILES = (25, 50, 75, 90)
@@ -77,14 +78,13 @@ def road_distances(cache, scenes) -> tuple[np.ndarray, float]:
 
 
 def canonical_positions(cache, positions: list) -> list:
-    """`positions` sorted by ascending row-major bin of the cache's model grid (the canonical
-    order of `scenegen_jax.scene`; the grid is centred on the ego)."""
-    m, size = float(cache.meta["m_per_px"]), int(cache.meta["grid_size"])
-    half = size * m / 2
-    def key(p):
-        row = np.clip((half - p[1]) // m, 0, size - 1)
-        return row * size + np.clip((p[0] + half) // m, 0, size - 1)
-    return sorted(positions, key=key)
+    """`positions` sorted by ascending bin of the cache's model grid (`scene.bin_index`: the
+    canonical order in which the model samples them)."""
+    cfg = Config(grid_size=int(cache.meta["grid_size"]), m_per_px=float(cache.meta["m_per_px"]))
+    if not positions:
+        return []
+    key = np.asarray(bin_index(np.asarray(positions, np.float32), cfg))
+    return [positions[i] for i in np.argsort(key, kind="stable")]
 
 
 def by_order(cache, scenes, group: int, groups: int = 4) -> list[dict]:
