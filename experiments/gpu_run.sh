@@ -20,7 +20,6 @@
 # ignores, installed the wheels with `pip install --no-index --no-deps --target`, and ran
 # this script with PYTHONPATH and CACHES set (PY=python3, the machine's Python).
 #
-#
 # Without a GPU the same recipe runs on two CPU cores, one process pinned to each
 # (CORES="0 1"), at batch 4 for twice the updates per core-hour (a step of batch 8 took
 # 9-11 s on one core of a Zen 5); session 59 ran the third phase so, committing the resumable checkpoints
