@@ -57,24 +57,29 @@ def real_scenes(cache, cls: str):
         yield i, [tuple(p) for p in np.asarray(actors.position[i], np.float64)[sel]]
 
 
-def road_distances(cache, scenes) -> tuple[np.ndarray, float]:
-    """(distances (m) to the nearest drivable pixel of the cache's canvas, 0 on it, of every
-    actor of `scenes` within `RADIUS_M` of the ego whose centre lies on the canvas, the
-    canvas's m per pixel)."""
+def scene_distances(cache, map_index: int, positions) -> list[float | None]:
+    """Each position's distance (m) to the nearest drivable pixel of map `map_index`'s canvas
+    (0 on it), or None when it is not counted: `RADIUS_M` or more from the ego, or off the
+    canvas."""
     m = float(cache.meta["m_per_px"])
-    drivable = ALL_MAP_CHANNELS.index("drivable_area")
+    road = np.asarray(cache.maps[map_index][..., ALL_MAP_CHANNELS.index("drivable_area")]) >= 0.5
+    half = road.shape[0] * m / 2
+    distance = distance_transform_edt(~road) * m
     out = []
-    for map_index, positions in scenes:
-        road = np.asarray(cache.maps[map_index][..., drivable]) >= 0.5
-        half = road.shape[0] * m / 2
-        distance = distance_transform_edt(~road) * m
-        for x, y in positions:
-            if np.hypot(x, y) >= RADIUS_M:
-                continue
-            row, col = int((half - y) // m), int((x + half) // m)
-            if 0 <= row < road.shape[0] and 0 <= col < road.shape[1]:
-                out.append(distance[row, col])
-    return np.array(out), m
+    for x, y in positions:
+        row, col = int((half - y) // m), int((x + half) // m)
+        counted = (np.hypot(x, y) < RADIUS_M and 0 <= row < road.shape[0]
+                   and 0 <= col < road.shape[1])
+        out.append(float(distance[row, col]) if counted else None)
+    return out
+
+
+def road_distances(cache, scenes) -> tuple[np.ndarray, float]:
+    """(the counted distances of `scene_distances` over every actor of `scenes`, the
+    canvas's m per pixel)."""
+    d = [x for map_index, positions in scenes
+         for x in scene_distances(cache, map_index, positions) if x is not None]
+    return np.array(d), float(cache.meta["m_per_px"])
 
 
 def canonical_positions(cache, positions: list) -> list:
@@ -88,18 +93,20 @@ def canonical_positions(cache, positions: list) -> list:
 
 
 def by_order(cache, scenes, group: int, groups: int = 4) -> list[dict]:
-    """The share on the drivable area of the actors at each place in canonical order, in
-    `groups` groups of `group` places (the last one open-ended)."""
+    """The share on the drivable area of the counted actors at each place in canonical
+    order, in `groups` groups of `group` places (the last one open-ended)."""
     parts = [[] for _ in range(groups)]
     for map_index, positions in scenes:
-        for k, p in enumerate(canonical_positions(cache, positions)):
-            parts[min(k // group, groups - 1)].append((map_index, [p]))
+        ordered = canonical_positions(cache, positions)
+        for k, d in enumerate(scene_distances(cache, map_index, ordered)):
+            if d is not None:
+                parts[min(k // group, groups - 1)].append(d)
     rows = []
     for g, part in enumerate(parts):
-        d, _ = road_distances(cache, part)
         last = "" if g == groups - 1 else g * group + group
-        rows.append({"places": f"{g * group + 1}-{last}", "actors": len(d),
-                     "on_drivable_share": round(float(np.mean(d == 0)), 4) if len(d) else None})
+        rows.append({"places": f"{g * group + 1}-{last}", "actors": len(part),
+                     "on_drivable_share": round(float(np.mean(np.array(part) == 0)), 4)
+                     if part else None})
     return rows
 
 
