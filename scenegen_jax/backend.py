@@ -55,6 +55,23 @@ def cpu_cores() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
+def free_memory_bytes() -> int:
+    """Bytes free for a program's buffers on the first local device: its allocator's limit
+    less what it holds (`memory_stats`: accelerators), else the host's available memory
+    (MemAvailable in /proc/meminfo, else its physical memory: XLA:CPU)."""
+    stats = jax.local_devices()[0].memory_stats() or {}
+    if "bytes_limit" in stats:
+        return int(stats["bytes_limit"]) - int(stats.get("bytes_in_use", 0))
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
 def default_workers() -> int:
     """Concurrent calls by default: one per CPU core on CPU, 1 on accelerators."""
     return cpu_cores() if on_cpu() else 1

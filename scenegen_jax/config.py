@@ -102,7 +102,9 @@ class Config:
         that train in full beside `train_layers` (beyond the paper; fine-tuning); every
         other parameter keeps its starting values.
       remat: recompute the backbone and heads in the train step's backward pass instead of
-        storing their activations (same values and gradients; less memory, more compute).
+        storing their activations (same values and gradients; less memory, more compute):
+        true, false, or "auto" (the `paper` preset's): false where the step without it
+        fits in the memory free when training starts, else true (`train.step.resolve_remat`).
       coord_channels: two more input channels, each pixel's row and column in [-1, 1]
         (beyond the paper's input; off in the presets). The network is otherwise fully
         convolutional and cannot tell the top of the grid from the middle, where the first
@@ -168,7 +170,7 @@ class Config:
     ego_size_m: tuple[float, float] = (1.95, 4.9)
     rotate_augment: bool = True
     map_dropout: float = 0.0
-    remat: bool = False
+    remat: bool | str = False  # true, false or "auto"
     train_layers: tuple[str, ...] = ()
     train_params: tuple[str, ...] = ()
     coord_channels: bool = False
@@ -234,6 +236,8 @@ class Config:
         default = cls()
         for key, value in d.items():
             want = type(getattr(default, key))
+            if key == "remat" and value == "auto":
+                continue
             if want is tuple:
                 if not isinstance(value, list):
                     raise ValueError(f"{source}: field {key}: expected a list, got {value!r}")
@@ -318,7 +322,9 @@ def config_problems(cfg: Config) -> list[str]:
         isinstance(v, int | float) and math.isfinite(v) and v > 0 for v in cfg.ego_size_m
     ):
         out.append(f"ego_size_m: must be two numbers > 0 (width, length), got {cfg.ego_size_m!r}")
-    for name in ("rotate_augment", "remat", "coord_channels", "order_channel",
+    if not (isinstance(cfg.remat, bool) or cfg.remat == "auto"):
+        out.append(f"remat: must be true, false or \"auto\", got {cfg.remat!r}")
+    for name in ("rotate_augment", "coord_channels", "order_channel",
                  "attribute_map_input", "attribute_map_skip", "heading_lane_frame",
                  "separate_attribute_mlps"):
         if not isinstance(getattr(cfg, name), bool):
@@ -341,7 +347,9 @@ PRESETS: dict[str, Config] = {
         learning_rate=1e-4,
         grad_clip=0.0,
         separate_attribute_mlps=True,
-        remat=True,  # accelerator memory; on CPU it costs 1-7 % of a train step (bench/README.md)
+        # Recomputes only where the step would not fit: its batch of 16 on one accelerator.
+        # On CPU, where a scene's step fits, recomputing costs 6-15 % (bench/README.md).
+        remat="auto",
     ),
     # Trains on 2 CPU cores: 1.25 m/px over the same 80 m region, half the paper's width.
     "cpu": Config(
@@ -386,9 +394,12 @@ def apply_overrides(base: Config, **overrides: Any) -> Config:
 def _parse(current: Any, value: Any, key: str = "value") -> Any:
     if not isinstance(value, str):
         return value
-    if isinstance(current, bool):
+    if key == "remat" and value.lower() == "auto":
+        return "auto"
+    if isinstance(current, bool) or key == "remat":
         if value.lower() not in ("true", "false"):
-            raise ValueError(f"{key}: must be true or false, got {value!r}")
+            also = ' (or "auto")' if key == "remat" else ""
+            raise ValueError(f"{key}: must be true or false{also}, got {value!r}")
         return value.lower() == "true"
     try:
         if isinstance(current, int):

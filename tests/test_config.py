@@ -46,6 +46,10 @@ def test_bad_overrides_name_the_field(override, message):
 def test_booleans_parse_exactly():
     assert get_config("tiny", rotate_augment="false").rotate_augment is False
     assert get_config("tiny", remat="True").remat is True
+    assert get_config("tiny", remat="auto").remat == "auto"
+    assert get_config("paper", remat="false").remat is False
+    with pytest.raises(ValueError, match=r'remat: must be true, false or "auto"'):
+        get_config("tiny").replace(remat="sometimes")
 
 
 @pytest.mark.parametrize("name", sorted(PRESETS))
@@ -74,6 +78,7 @@ def test_config_mismatch_names_the_fields(tmp_path):
     save_or_check_config(workdir, get_config("tiny"))
     with pytest.raises(ValueError, match=r"learning_rate: 0.001 != 0.002.*seed: 0 != 3"):
         save_or_check_config(workdir, get_config("tiny", learning_rate="2e-3", seed="3"))
+    save_or_check_config(workdir, get_config("tiny", remat="auto"))  # memory, not values
 
 
 def test_loading_a_workdir_without_checkpoints_creates_nothing(tmp_path):

@@ -36,12 +36,17 @@ from scenegen_jax.model.network import (
     lstm_gates_reference,
     orientation_sectors,
 )
+from scenegen_jax.raster.map import ALL_MAP_CHANNELS
+from scenegen_jax.scene import Actors, make_ego
 from scenegen_jax.train.data import batch_indices
 from scenegen_jax.train.step import (
+    REMAT_FREE_SHARE,
     init_state,
     loss_fn,
     make_optimizer,
     make_train_step,
+    resolve_remat,
+    step_bytes_without_remat,
     train_step,
 )
 
@@ -303,6 +308,45 @@ def test_train_step_compiles_once(tiny_train_cache):
         idx = batch_indices(len(tiny_train_cache), CFG.batch_size, CFG.seed, i)
         state, _ = step(state, jax.device_put(_batch(tiny_train_cache, idx)))
     assert len(traces) == 1
+
+
+def _batch_shapes(cfg, b: int) -> Batch:
+    """The shapes and dtypes of a cached batch of `b` scenes of `cfg` (`gather_batch`)."""
+    s, m = cfg.canvas_size, cfg.max_actors
+    sds = jax.ShapeDtypeStruct
+    actors = Actors(cls=sds((b, m), np.int32), position=sds((b, m, 2), np.float32),
+                    size=sds((b, m, 2), np.float32), heading=sds((b, m), np.float32),
+                    velocity=sds((b, m, 2), np.float32), valid=sds((b, m), np.bool_))
+    ego = jax.tree.map(lambda x: sds((b, *x.shape), x.dtype), make_ego(cfg.ego_size_m))
+    return Batch(sds((b, s, s, len(ALL_MAP_CHANNELS)), np.float16), actors, ego)
+
+
+@pytest.mark.parametrize("cfg", [
+    get_config("tiny", batch_size=1, bptt_window=10, max_actors=9),  # hidden 16, grid 32
+    get_config("paper", grid_size=128, m_per_px=0.625, max_actors=4, bptt_window=5,
+               batch_size=1, gn_groups=8, remat=False),  # hidden 32
+], ids=["tiny", "paper-grid128"])
+def test_step_memory_estimate_follows_xlas_buffer_plan(cfg):
+    """`remat` "auto" decides on `step_bytes_without_remat`: within 10 % of the buffers XLA
+    plans for the step without remat, at the presets' two hidden widths (its terms' fit)."""
+    compiled = make_train_step(cfg).lower(init_state(cfg), _batch_shapes(cfg, 1)).compile()
+    planned = compiled.memory_analysis().temp_size_in_bytes
+    assert 0.9 < planned / step_bytes_without_remat(cfg, 1) < 1.1
+
+
+def test_remat_auto_stores_activations_where_they_fit(monkeypatch):
+    from scenegen_jax.train import step as step_module
+
+    cfg = get_config("paper", remat="auto")
+    need = step_bytes_without_remat(cfg, 1)
+    assert need == 25 * 320**2 * (60 * 32 + 2800)  # 11.3 GiB: the paper's T 25, one scene
+    assert step_bytes_without_remat(cfg, 16) == 16 * need
+    monkeypatch.setattr(step_module, "free_memory_bytes", lambda: int(need / REMAT_FREE_SHARE) + 1)
+    assert resolve_remat(cfg, 1).remat is False
+    assert resolve_remat(cfg, 2).remat is True
+    monkeypatch.setattr(step_module, "free_memory_bytes", lambda: 0)
+    assert resolve_remat(cfg.replace(remat=False), 1).remat is False  # set values are kept
+    assert resolve_remat(get_config("tiny"), 1) == get_config("tiny")
 
 
 def test_empty_scene_is_one_stop_step(tiny_train_cache, small_scenes):

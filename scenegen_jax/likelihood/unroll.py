@@ -31,10 +31,12 @@ train step, elsewhere `_scanned_steps`, the same mathematics as a loop over the 
     single window), a scene's first step skips the recurrent convolutions of the zero
     initial state;
   * the densities (small) run once, batched over all steps of the window;
-  * with `cfg.remat`, a chunk's backbone and heads are recomputed in the backward pass
-    instead of stored (`recompute_in_backward`), each one chunk late so that the recomputation
-    overlaps the next chunk's recurrence: at the paper's width, grid 128, T 25, the step's
-    temporaries drop from 2.1 to 0.9 GiB for 1-7 % more time on 2 CPU cores (bench/README.md).
+  * with `cfg.remat` (true; "auto" is made true or false by `train.step.resolve_remat`
+    before a train step is built, and counts as true unresolved), a chunk's backbone and
+    heads are recomputed in the backward pass instead of stored (`recompute_in_backward`),
+    each one chunk late so that the recomputation overlaps the next chunk's recurrence: at
+    the paper's width, grid 128, T 25, the step's temporaries drop from 2.1 to 0.9 GiB for
+    1-7 % more time on 2 CPU cores (bench/README.md).
 `tests/reference_unroll.py` holds the plain per-step version it is tested against.
 """
 

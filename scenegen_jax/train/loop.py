@@ -33,6 +33,7 @@ from scenegen_jax.train.step import (
     first_train_step,
     init_state,
     make_optimizer,
+    resolve_remat,
 )
 from scenegen_jax.workdir import CHECKPOINTS, CONFIG_FILE, load_params, load_workdir_config
 
@@ -50,13 +51,14 @@ def _write_atomic(path: str, text: str) -> None:
 
 
 def save_or_check_config(workdir: str, cfg: Config) -> None:
-    """Writes the resolved config beside the checkpoints; a resume must use the same one."""
+    """Writes the resolved config beside the checkpoints; a resume must use the same one,
+    except for `remat` (memory against time; the same values)."""
     os.makedirs(workdir, exist_ok=True)
     path = os.path.join(workdir, CONFIG_FILE)
     if os.path.exists(path):
         with open(path) as f:
             saved = Config.from_json(f.read(), path)
-        if saved != cfg:
+        if saved.replace(remat=cfg.remat) != cfg:
             raise ValueError(
                 f"{path}: this workdir was trained with a different config "
                 f"({'; '.join(saved.differences(cfg))}, saved != requested); use a new "
@@ -221,8 +223,9 @@ def train(
         host = gather_batch(cache, indices, cfg)
         check_batch(host, [cache.scene_name(i) for i in indices])
         batch = to_device(host, data_sharding, cfg.batch_size)
-        if step_fn is None:
-            step_fn = first_train_step(cfg, state, batch, mesh, steps - step)
+        if step_fn is None:  # remat resolved once, for the programs the run compiles
+            step_cfg = resolve_remat(cfg, cfg.batch_size // mesh.size)
+            step_fn = first_train_step(step_cfg, state, batch, mesh, steps - step)
         state, stats = step_fn(state, batch)
         stats = {**stats, "batches": 1}
         acc = stats if acc is None else jax.tree.map(lambda a, b: a + b, acc, stats)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import functools
+import logging
 from typing import Any, NamedTuple
 
 import jax
@@ -19,6 +20,7 @@ from scenegen_jax.backend import (
     DATA_AXIS,
     QUICK_START_STEPS,
     compiled_init,
+    free_memory_bytes,
     quick_start_training,
     quick_train_compiler_options,
     train_compiler_options,
@@ -38,6 +40,8 @@ from scenegen_jax.likelihood.unroll import (
     unroll_terms_and_grads,
 )
 from scenegen_jax.model.network import MAP_CHANNEL_AXIS, init_params
+
+log = logging.getLogger(__name__)
 
 
 class TrainState(NamedTuple):
@@ -196,10 +200,47 @@ def train_step(
     return _apply_grads(state, cfg, unrolled, grads, devices, axis)
 
 
+# The train step's buffers without remat, bytes per scene, step of a window and pixel of the
+# grid: STEP_BYTES_PER_CHANNEL per hidden channel plus STEP_BYTES_FIXED. XLA's buffer plans
+# (`memory_analysis`) held 3,625-3,911 at hidden 16 (grids 32 and 64) and 4,505 (grid 128)
+# and 4,788 (grid 320, T 25, B 1) at the paper's hidden 32 (bench/README.md, session 64;
+# tests/test_train.py).
+STEP_BYTES_PER_CHANNEL = 60
+STEP_BYTES_FIXED = 2800
+# Share of the free memory a step without remat may take (`resolve_remat`): the rest holds
+# the data and the checkpoints, and covers the estimate's error.
+REMAT_FREE_SHARE = 0.75
+
+
+def step_bytes_without_remat(cfg: Config, scenes: int) -> int:
+    """Estimated bytes of the train step's buffers without remat on a device that holds
+    `scenes` scenes of the batch: about one window's activations (the step takes a window's
+    gradient right after its forward pass)."""
+    per_pixel = STEP_BYTES_PER_CHANNEL * cfg.hidden + STEP_BYTES_FIXED
+    return scenes * cfg.bptt_window * cfg.grid_size**2 * per_pixel
+
+
+def resolve_remat(cfg: Config, scenes: int) -> Config:
+    """`cfg` with `remat` "auto" made false where the step without remat on a device that
+    holds `scenes` scenes of the batch takes at most `REMAT_FREE_SHARE` of the memory free
+    now (`step_bytes_without_remat`, `backend.free_memory_bytes`), else true; the choice is
+    logged. Other values are kept. At the paper's grid and T 25 a scene's step without remat
+    takes 12 GiB: on a 24 GiB host (2 cores) it runs without, 6-15 % faster; the paper's
+    batch of 16 on one accelerator recomputes (bench/README.md)."""
+    if cfg.remat != "auto":
+        return cfg
+    need, free = step_bytes_without_remat(cfg, scenes), free_memory_bytes()
+    remat = need > REMAT_FREE_SHARE * free
+    log.info("remat auto: %s (the step without it takes about %.1f GiB; %.1f GiB free)",
+             "on" if remat else "off", need / 2**30, free / 2**30)
+    return cfg.replace(remat=remat)
+
+
 def make_train_step(cfg: Config, mesh: Mesh | None = None):
     """The jitted train step; with a mesh, the batch is sharded over `data` (each device
     unrolls its own scenes, `shard_map`) and the state replicated. The state argument is
-    donated."""
+    donated. `cfg.remat` "auto" is resolved for `cfg.batch_size` (`resolve_remat`)."""
+    cfg = resolve_remat(cfg, cfg.batch_size // (1 if mesh is None else mesh.size))
     options = train_compiler_options()
     if mesh is None:
         return jax.jit(lambda state, batch: train_step(state, batch, cfg), donate_argnums=0,
@@ -251,6 +292,7 @@ class SplitTrainStep:
 
     def __init__(self, cfg: Config, state: TrainState, batch: Batch, quick: bool = False):
         scale = 1.0 / batch.actors.cls.shape[0]
+        cfg = resolve_remat(cfg, batch.actors.cls.shape[0])
         self._starts = [range(w * cfg.bptt_window, (w + 1) * cfg.bptt_window,
                               chunk_steps(cfg)) for w in range(num_windows(cfg))]
 
