@@ -21,6 +21,16 @@ drivable area by each actor's place among its scene's actors of the class in can
 
     .venv/bin/python experiments/off_road_distance.py --cache runs/cache_cpu_womdjson_val \
         --samples OUT/scenes.jsonl --by-order 4
+
+`--by-log` splits the share by the log (or file) a scene comes from, the part of its scene id
+before the first `/`: the Argoverse 2 training logs differ (one parks a third of its
+vehicles off the drivable area, the other two few). `scenes_without_off_drivable` and
+`off_drivable_in_top_tenth` (the share of the actors off the drivable area that stand in the
+tenth of the scenes with the most of them) say whether they are spread over the scenes or
+stand in a few crowded ones. `off_share_before_any_off` and `off_share_after_one_off` (each
+with its count of actors) split the actors within 40 m by whether an earlier one of their
+scene in canonical order stands off the drivable area: a model that has put one vehicle in a
+parking lot puts the next ones there too.
 """
 
 from __future__ import annotations
@@ -74,12 +84,13 @@ def scene_distances(cache, map_index: int, positions) -> list[float | None]:
     return out
 
 
-def road_distances(cache, scenes) -> tuple[np.ndarray, float]:
-    """(the counted distances of `scene_distances` over every actor of `scenes`, the
-    canvas's m per pixel)."""
-    d = [x for map_index, positions in scenes
-         for x in scene_distances(cache, map_index, positions) if x is not None]
-    return np.array(d), float(cache.meta["m_per_px"])
+def road_distances(cache, scenes) -> list[np.ndarray]:
+    """The counted distances of `scene_distances`, one array per scene of `scenes`, in
+    canonical order (`canonical_positions`)."""
+    return [np.array([x for x in scene_distances(cache, map_index,
+                                                 canonical_positions(cache, positions))
+                      if x is not None])
+            for map_index, positions in scenes]
 
 
 def canonical_positions(cache, positions: list) -> list:
@@ -110,6 +121,39 @@ def by_order(cache, scenes, group: int, groups: int = 4) -> list[dict]:
     return rows
 
 
+def concentration(per_scene: list[np.ndarray]) -> dict:
+    """How the actors off the drivable area spread over the scenes (`road_distances`)."""
+    counts = np.array([np.sum(d > 0) for d in per_scene], int)
+    top = np.sort(counts)[::-1][: max(1, len(counts) // 10)]
+    return {"scenes_without_off_drivable": round(float(np.mean(counts == 0)), 4),
+            "off_drivable_in_top_tenth": round(float(top.sum() / max(counts.sum(), 1)), 4)}
+
+
+def cascade(per_scene: list[np.ndarray]) -> dict:
+    """The share off the drivable area of the counted actors with no actor off it before them
+    in their scene's canonical order, and of those with one (`road_distances`)."""
+    after = np.concatenate([np.zeros(0, bool)] + [np.cumsum(d > 0) - (d > 0) > 0
+                                                   for d in per_scene])
+    off = np.concatenate([np.zeros(0, bool)] + [d > 0 for d in per_scene])
+    return {f"off_share_{name}": (round(float(np.mean(off[sel])), 4) if np.any(sel) else None,
+                                  int(np.sum(sel)))
+            for name, sel in (("before_any_off", ~after), ("after_one_off", after))}
+
+
+def by_log(cache, scenes, per_scene: list[np.ndarray]) -> dict:
+    """The share on the drivable area and `concentration` of each log's scenes."""
+    logs = {}
+    for (map_index, _), d in zip(scenes, per_scene, strict=True):
+        logs.setdefault(cache.scene_ids[map_index].split("/")[0], []).append(d)
+    out = {}
+    for log, part in logs.items():
+        every = np.concatenate(part)
+        out[log] = {"scenes": len(part), "actors": len(every),
+                    "on_drivable_share": round(float(np.mean(every == 0)), 4) if len(every)
+                    else None, **concentration(part), **cascade(part)}
+    return out
+
+
 def percentiles(d: np.ndarray) -> dict:
     pct = np.percentile(d, PERCENTILES).round(1).tolist() if len(d) else [None] * len(PERCENTILES)
     return dict(zip(map(str, PERCENTILES), pct, strict=True))
@@ -122,11 +166,14 @@ def main() -> None:
     parser.add_argument("--class", dest="cls", default=CLASS_NAMES[VEHICLE], choices=CLASS_NAMES)
     parser.add_argument("--by-order", type=int, metavar="N",
                         help="also the share by place in canonical order, in groups of N")
+    parser.add_argument("--by-log", action="store_true",
+                        help="also the share by log (the scene id's part before its first /)")
     args = parser.parse_args()
     cache = load_cache(args.cache)
     scenes = list(sampled_scenes(args.samples, args.cls) if args.samples
                   else real_scenes(cache, args.cls))
-    every, m = road_distances(cache, scenes)
+    per_scene = road_distances(cache, scenes)
+    every, m = np.concatenate([np.zeros(0), *per_scene]), float(cache.meta["m_per_px"])
     d = every[every > 0]
     print(json.dumps({"class": args.cls, "actors": len(every), "off_drivable": len(d),
                       "on_drivable_share": round(1 - len(d) / max(len(every), 1), 4),
@@ -135,6 +182,8 @@ def main() -> None:
                       # a neighbouring pixel, diagonals included
                       "share_within_one_pixel": round(float(np.mean(d <= m * 2**0.5)), 4)
                       if len(d) else None,
+                      **concentration(per_scene), **cascade(per_scene),
+                      **({"by_log": by_log(cache, scenes, per_scene)} if args.by_log else {}),
                       **({"by_order": by_order(cache, scenes, args.by_order)}
                          if args.by_order else {})}))
 

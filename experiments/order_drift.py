@@ -15,6 +15,9 @@ the model's teacher-forced location mass there (all vehicles on the grid, not on
 
   .venv/bin/python experiments/order_drift.py --pretrained cpu-av2-womd \
       --data runs/cache_cpu_av2_val --num 32
+
+`--index` takes the scenes by index instead (for example one log's: the Argoverse 2 training
+cache holds its three logs' 156 scenes each in turn, `--index $(seq 156 5 311)`).
 """
 
 from __future__ import annotations
@@ -43,9 +46,9 @@ def _rows(actors, cfg, steps: int) -> np.ndarray:
     return np.where(np.asarray(actors.valid[:steps]), rows, np.nan)
 
 
-def order_drift(params, cfg, cache, num: int, steps: int, seed: int, batch: int = 8) -> dict:
-    """Per-step rows (see the module docstring), each [num, steps], and per-scene counts."""
-    indices = np.linspace(0, len(cache) - 1, min(num, len(cache))).astype(int)
+def order_drift(params, cfg, cache, indices, steps: int, seed: int, batch: int = 8) -> dict:
+    """Per-step rows (see the module docstring), each [scenes, steps], and per-scene counts,
+    for the cache's scenes `indices`."""
     maps, scenes = real_scenes(cache, indices, cfg)
     options = SamplerOptions(heatmap_steps=tuple(range(cfg.max_actors)))
     row_of_bin = np.arange(cfg.grid_size**2) // cfg.grid_size
@@ -86,11 +89,17 @@ def main() -> None:
     add_model_args(p)
     p.add_argument("--data", required=True, help="prepared cache of real scenes")
     p.add_argument("--num", type=int, default=32, help="scenes spread over the cache")
+    p.add_argument("--index", type=int, nargs="+", help="these scenes instead of --num")
     p.add_argument("--steps", type=int, default=8, help="steps to report")
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args()
     cfg, params, _, _ = load_model(args)
-    r = order_drift(params, cfg, load_cache(args.data), args.num, args.steps, args.seed)
+    cache = load_cache(args.data)
+    indices = (np.linspace(0, len(cache) - 1, min(args.num, len(cache))).astype(int)
+               if args.index is None else np.asarray(args.index))
+    if np.any((indices < 0) | (indices >= len(cache))):
+        p.error(f"--index: {args.data} holds scenes 0 to {len(cache) - 1}")
+    r = order_drift(params, cfg, cache, indices, args.steps, args.seed)
     print(f"{args.data}: {len(r['real'])} scenes; mean row of the t-th actor (0 = top)")
     print("step | real | teacher forced, expected | sampling, expected | sampled")
     for t in range(args.steps):
