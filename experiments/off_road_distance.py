@@ -141,7 +141,7 @@ def cascade(per_scene: list[np.ndarray]) -> dict:
 
 
 def by_log(cache, scenes, per_scene: list[np.ndarray]) -> dict:
-    """The share on the drivable area and `concentration` of each log's scenes."""
+    """The share on the drivable area, `concentration` and `cascade` of each log's scenes."""
     logs = {}
     for (map_index, _), d in zip(scenes, per_scene, strict=True):
         logs.setdefault(cache.scene_ids[map_index].split("/")[0], []).append(d)
