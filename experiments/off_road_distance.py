@@ -84,13 +84,16 @@ def scene_distances(cache, map_index: int, positions) -> list[float | None]:
     return out
 
 
-def road_distances(cache, scenes) -> list[np.ndarray]:
-    """The counted distances of `scene_distances`, one array per scene of `scenes`, in
-    canonical order (`canonical_positions`)."""
-    return [np.array([x for x in scene_distances(cache, map_index,
-                                                 canonical_positions(cache, positions))
-                      if x is not None])
+def road_distances(cache, scenes) -> list[list[float | None]]:
+    """`scene_distances` of each scene of `scenes`, its actors in canonical order
+    (`canonical_positions`)."""
+    return [scene_distances(cache, map_index, canonical_positions(cache, positions))
             for map_index, positions in scenes]
+
+
+def counted(distances: list[float | None]) -> np.ndarray:
+    """The counted distances of one scene's `road_distances`."""
+    return np.array([x for x in distances if x is not None])
 
 
 def canonical_positions(cache, positions: list) -> list:
@@ -103,13 +106,12 @@ def canonical_positions(cache, positions: list) -> list:
     return [positions[i] for i in np.argsort(key, kind="stable")]
 
 
-def by_order(cache, scenes, group: int, groups: int = 4) -> list[dict]:
+def by_order(per_scene: list[list[float | None]], group: int, groups: int = 4) -> list[dict]:
     """The share on the drivable area of the counted actors at each place in canonical
-    order, in `groups` groups of `group` places (the last one open-ended)."""
+    order (`road_distances`), in `groups` groups of `group` places (the last one open-ended)."""
     parts = [[] for _ in range(groups)]
-    for map_index, positions in scenes:
-        ordered = canonical_positions(cache, positions)
-        for k, d in enumerate(scene_distances(cache, map_index, ordered)):
+    for distances in per_scene:
+        for k, d in enumerate(distances):
             if d is not None:
                 parts[min(k // group, groups - 1)].append(d)
     rows = []
@@ -122,7 +124,7 @@ def by_order(cache, scenes, group: int, groups: int = 4) -> list[dict]:
 
 
 def concentration(per_scene: list[np.ndarray]) -> dict:
-    """How the actors off the drivable area spread over the scenes (`road_distances`)."""
+    """How the actors off the drivable area spread over the scenes (each scene's `counted`)."""
     counts = np.array([np.sum(d > 0) for d in per_scene], int)
     top = np.sort(counts)[::-1][: max(1, len(counts) // 10)]
     return {"scenes_without_off_drivable": round(float(np.mean(counts == 0)), 4),
@@ -131,7 +133,7 @@ def concentration(per_scene: list[np.ndarray]) -> dict:
 
 def cascade(per_scene: list[np.ndarray]) -> dict:
     """The share off the drivable area of the counted actors with no actor off it before them
-    in their scene's canonical order, and of those with one (`road_distances`)."""
+    in their scene's canonical order, and of those with one (each scene's `counted`)."""
     after = np.concatenate([np.zeros(0, bool)] + [np.cumsum(d > 0) - (d > 0) > 0
                                                    for d in per_scene])
     off = np.concatenate([np.zeros(0, bool)] + [d > 0 for d in per_scene])
@@ -172,7 +174,8 @@ def main() -> None:
     cache = load_cache(args.cache)
     scenes = list(sampled_scenes(args.samples, args.cls) if args.samples
                   else real_scenes(cache, args.cls))
-    per_scene = road_distances(cache, scenes)
+    in_order = road_distances(cache, scenes)
+    per_scene = [counted(d) for d in in_order]
     every, m = np.concatenate([np.zeros(0), *per_scene]), float(cache.meta["m_per_px"])
     d = every[every > 0]
     print(json.dumps({"class": args.cls, "actors": len(every), "off_drivable": len(d),
@@ -184,7 +187,7 @@ def main() -> None:
                       if len(d) else None,
                       **concentration(per_scene), **cascade(per_scene),
                       **({"by_log": by_log(cache, scenes, per_scene)} if args.by_log else {}),
-                      **({"by_order": by_order(cache, scenes, args.by_order)}
+                      **({"by_order": by_order(in_order, args.by_order)}
                          if args.by_order else {})}))
 
 
