@@ -8,13 +8,21 @@
 # layer), the nearest lane's direction as two more map channels (the `nearest_lane` layers),
 # the heading mixture turned by that direction (`heading_lane_frame`) and a 50-step warm-up.
 # Since session 33 both runs also read the `dataset` layers (which data set a scene comes
-# from; the no-map run's only layers). The twelfth phase (session 33) trains only their
-# weights (`train_layers=dataset`), from the ninth phase's step 700 and the no-map run's
-# eighth phase's step 700, the new weights at zero: peak learning rate 1e-3, decay over 250
-# steps, seed 12, 300 steps (session 33 ran the same `scenegen train` on both cores):
-#   INIT_FROM=runs/phase9_700 experiments/pretrained_run.sh 300 1
+# from; the no-map run's only layers). The thirteenth phase (session 68) trains only the box
+# MLP's weights (`train_params=box0_b,...`), from the twelfth phase's step 300 (the model
+# shipped in sessions 33-67): peak learning rate 3e-3, decay over 250 steps, seed 70, 300
+# steps (session 68 ran the same `scenegen train` with LD_PRELOAD of tcmalloc):
+#   git worktree add /tmp/p12 f81cb43; INIT_FROM=/tmp/p12/experiments/pretrained_run \
+#       experiments/pretrained_run.sh 300 1
+# Its step 300 is the shipped cpu-av2-womd (experiments/results/README.md, session 68). The
+# location term reads no box weight, so the no-map twin needs no thirteenth phase: both
+# models' location NLL is the twelfth phase's to the last digit. The no-map run's last phase
+# is the twelfth: only the `dataset` layers' weights (`train_layers=dataset`), from the
+# ninth phase's step 700 and the no-map run's eighth phase's step 700, the new weights at
+# zero: peak learning rate 1e-3, decay over 250 steps, seed 12, 300 steps (session 33 ran
+# the same `scenegen train` on both cores; the map run's twelfth phase is this script at
+# commit f81cb43 with INIT_FROM=runs/phase9_700):
 #   NOMAP=1 INIT_FROM=runs/nomap8_700 experiments/pretrained_run.sh 300 0
-# Its step 300 is the shipped cpu-av2-womd (experiments/results/README.md, session 33).
 # runs/phase9_700 and runs/nomap8_700 are not committed; on a fresh clone the ninth phase is
 # the package's model at commit b217040 and the no-map eighth phase the run at bff20b5:
 #   git worktree add /tmp/p9 b217040; INIT_FROM=/tmp/p9/scenegen_jax/pretrained/cpu-av2-womd
@@ -86,15 +94,18 @@ prep() {  # SOURCE ROOT SPLIT OUT [prepare options]
 prep av2 "$SHARED/av2_sensor_mini" train runs/cache_cpu_av2_train --stride 1
 prep womd_json "$SHARED/womd_mini/gpudrive_json" train runs/cache_cpu_womdjson_train
 prep scenarionet "$SHARED/womd_mini/scenarionet" train runs/cache_cpu_womdpkl_train
-# The twelfth phase's schedule for both runs: the `dataset` layers' weights only, peak
-# learning rate 1e-3, decay over 250 steps.
-SCHEDULE="train_layers=dataset learning_rate=1e-3 decay_steps=250 seed=12"
+# Each run's last phase: for the no-map run the twelfth (the `dataset` layers' weights only,
+# peak learning rate 1e-3, decay over 250 steps); for the map run the thirteenth (the box
+# MLP's weights only, peak 3e-3, decay over 250 steps).
 if [ -n "${NOMAP:-}" ]; then
-    WORKDIR=experiments/nomap_run INPUTS="map_layers=dataset $SCHEDULE"
+    WORKDIR=experiments/nomap_run
+    INPUTS="map_layers=dataset train_layers=dataset learning_rate=1e-3 decay_steps=250 seed=12"
 else
     WORKDIR=experiments/pretrained_run
+    BOX=box0_b,box0_map_w,box0_w,box1_b,box1_w,box2_b,box2_map_w,box2_w
     INPUTS="map_layers=lanes,drivable,crosswalks,nearest_lane,dataset attribute_map_input=true"
-    INPUTS="$INPUTS attribute_map_skip=true heading_lane_frame=true $SCHEDULE"
+    INPUTS="$INPUTS attribute_map_skip=true heading_lane_frame=true"
+    INPUTS="$INPUTS train_params=$BOX learning_rate=3e-3 decay_steps=250 seed=70"
 fi
 XLA_FLAGS=--xla_cpu_multi_thread_eigen=false taskset -c "$CORE" $BIN/scenegen train \
     --config cpu --set coord_channels=true order_channel=true $INPUTS \
