@@ -5,7 +5,9 @@ percentiles per source, to see whether a model gives each data set its own box s
         runs/cache_cpu_av2_val --samples OUT/scenes.jsonl ...
 
 (`OUT` from `scenegen sample ... --out OUT`.) Real scenes count every vehicle of the cache
-(anywhere on the canvas); sampled ones every sampled vehicle.
+whose centre lies in the region of interest, as `scenegen evaluate`'s MMD^2 does (the cache
+also holds vehicles beyond it, as far as a rotation can reach; `--whole-canvas` counts those
+too); sampled ones every sampled vehicle (all in the region).
 """
 
 from __future__ import annotations
@@ -15,15 +17,20 @@ import json
 
 import numpy as np
 
+from scenegen_jax.config import Config
 from scenegen_jax.data.cache import load_cache
-from scenegen_jax.scene import CLASS_NAMES, VEHICLE
+from scenegen_jax.scene import CLASS_NAMES, VEHICLE, in_region
 
 PERCENTILES = (10, 25, 50, 75, 90)
 
 
-def cache_areas(path: str) -> np.ndarray:
-    actors = load_cache(path).actors
+def cache_areas(path: str, whole_canvas: bool = False) -> np.ndarray:
+    cache = load_cache(path)
+    actors = cache.actors
     keep = np.asarray(actors.valid) & (np.asarray(actors.cls) == VEHICLE)
+    if not whole_canvas:
+        cfg = Config.from_json(json.dumps(cache.meta["config"]))
+        keep &= in_region(np.asarray(actors.position), cfg)
     size = np.asarray(actors.size)[keep]
     return size[:, 0] * size[:, 1]
 
@@ -39,8 +46,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--caches", nargs="*", default=[])
     parser.add_argument("--samples", nargs="*", default=[])
+    parser.add_argument("--whole-canvas", action="store_true",
+                        help="count the caches' vehicles beyond the region too")
     args = parser.parse_args()
-    sources = [(p, cache_areas(p)) for p in args.caches]
+    sources = [(p, cache_areas(p, args.whole_canvas)) for p in args.caches]
     sources += [(p, sample_areas(p)) for p in args.samples]
     for name, areas in sources:
         pct = np.percentile(areas, PERCENTILES).round(2).tolist()
