@@ -66,6 +66,11 @@ def file_checksums(directory: str) -> dict[str, str]:
     return out
 
 
+def _entries(state) -> dict:
+    """A NamedTuple state's entries as saved: every one but those that are None."""
+    return {k: v for k, v in state._asdict().items() if v is not None}
+
+
 def _abstract(x, sharding=None):
     """Shape, dtype and sharding (default: the first local device) for restoring an array
     (or abstract array)."""
@@ -109,16 +114,19 @@ class Checkpointer:
 
     def save(self, state, force: bool = False) -> bool:
         """Saves a state (a NamedTuple with a `step` entry, e.g. `train.step.TrainState`) if
-        the step is due (or `force`); returns whether it saved."""
+        the step is due (or `force`); returns whether it saved. Entries that are None (e.g.
+        `TrainState.ema` without a moving average) are not saved, so the checkpoint has the
+        entries of one saved before they existed."""
         step = int(state.step)
-        saved = self.manager.save(step, args=ocp.args.StandardSave(state._asdict()), force=force)
+        entries = _entries(state)
+        saved = self.manager.save(step, args=ocp.args.StandardSave(entries), force=force)
         if saved:
             self.manager.wait_until_finished()
             if is_main_process():
                 folder = os.path.join(self.directory, str(step))
                 path = os.path.join(folder, CHECKSUM_FILE)
                 with open(path + ".tmp", "w") as f:
-                    json.dump({**tree_checksums(state._asdict()), **file_checksums(folder)}, f)
+                    json.dump({**tree_checksums(entries), **file_checksums(folder)}, f)
                 os.replace(path + ".tmp", path)
             sync_processes(f"checksums of step {step} written")
         return saved
@@ -178,16 +186,16 @@ class Checkpointer:
         there is none.
 
         `template`: the state (a NamedTuple of arrays or abstract arrays), restored whole and
-        returned as that type; or a dict of some of its entries (e.g. {"params": ...}),
-        restored alone (the others are not read) and returned as a dict, with `step` the
-        checkpoint's step.
+        returned as that type (its None entries stay None and are not read); or a dict of
+        some of its entries (e.g. {"params": ...}), restored alone (the others are not read)
+        and returned as a dict, with `step` the checkpoint's step.
         With `step`, that checkpoint only (ValueError naming the saved steps if it is not
         there; None if it does not restore). `sharding`: where every restored array goes
         (default: the first local device; a training run: replicated over its mesh).
         """
         whole = hasattr(template, "_asdict")
         abstract = jax.tree.map(
-            lambda x: _abstract(x, sharding), template._asdict() if whole else dict(template)
+            lambda x: _abstract(x, sharding), _entries(template) if whole else dict(template)
         )
         if whole:
             args = ocp.args.StandardRestore(abstract)

@@ -44,8 +44,8 @@ PAPER_LAYER_GROUPS: tuple[str, ...] = ("lanes", "drivable", "crosswalks")
 
 # Fields that only training reads (the scorer and the sampler see `Config.inference()`).
 TRAINING_ONLY = ("name", "hard_negatives", "batch_size", "learning_rate", "warmup_steps",
-                 "decay_steps", "grad_clip", "rotate_augment", "map_dropout", "remat",
-                 "train_layers", "train_params", "seed")
+                 "decay_steps", "grad_clip", "ema_decay", "rotate_augment", "map_dropout",
+                 "remat", "train_layers", "train_params", "seed")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -84,6 +84,11 @@ class Config:
         model's last phase decays the noise of constant-rate Adam at batch 4
         (scenegen_jax/pretrained/cpu-av2-womd/MODEL_CARD.md).
       grad_clip: global-norm clip (0 disables).
+      ema_decay: d of an exponential moving average of the parameters, updated after every
+        step as d * average + (1 - d) * parameters from the parameters the run starts with
+        (beyond the paper; 0, the default, keeps none). With it, `score`, `sample`,
+        `evaluate`, `export-model` and `--init-from` read the average instead of the last
+        step's parameters (`workdir.load_params`); about 1 / (1 - d) steps are averaged.
       proposals: M, best-of-M draws of the heading and velocity when sampling (the box size
         and the position are one draw each; `sampling.rollout`).
       zero_speed: speeds (m/s) at or below this are the v = 0 point mass.
@@ -164,6 +169,7 @@ class Config:
     warmup_steps: int = 0
     decay_steps: int = 0
     grad_clip: float = 1.0
+    ema_decay: float = 0.0
     proposals: int = 10
     zero_speed: float = 0.2
     pedestrian_size_m: float = 0.6
@@ -316,6 +322,8 @@ def config_problems(cfg: Config) -> list[str]:
         v = getattr(cfg, name)
         if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
             out.append(f"{name}: must be a finite number >= 0, got {v!r}")
+    if not (isinstance(cfg.ema_decay, int | float) and 0.0 <= cfg.ema_decay < 1.0):
+        out.append(f"ema_decay: must be in [0, 1), got {cfg.ema_decay!r}")
     if not (isinstance(cfg.map_dropout, int | float) and 0.0 <= cfg.map_dropout <= 1.0):
         out.append(f"map_dropout: must be in [0, 1], got {cfg.map_dropout!r}")
     if len(cfg.ego_size_m) != 2 or not all(

@@ -26,15 +26,17 @@ def load_workdir_config(workdir: str) -> Config:
 
 def load_params(workdir: str, step: int | None = None):
     """(config, parameters, step) of a training workdir: the parameters of its newest readable
-    checkpoint, or of the one saved at `step`; only the parameters are read."""
+    checkpoint, or of the one saved at `step`; only the parameters are read. A run with
+    `ema_decay` gives its parameters' moving average (`train.step.TrainState.ema`) instead."""
     cfg = load_workdir_config(workdir)
     directory = os.path.join(workdir, CHECKPOINTS)
     if not os.path.isdir(directory):
         raise FileNotFoundError(f"{directory}: no checkpoints (train this workdir first)")
-    template = {"params": jax.eval_shape(lambda: init_params(cfg, jax.random.key(0)))}
+    entry = "ema" if cfg.ema_decay > 0 else "params"
+    template = {entry: jax.eval_shape(lambda: init_params(cfg, jax.random.key(0)))}
     ckpt = Checkpointer(directory, every=1)
     restored = ckpt.restore_latest(template, step)
     ckpt.close()
     if restored is None:
         raise FileNotFoundError(f"{directory}: no readable checkpoint")
-    return cfg, restored["params"], int(restored["step"])
+    return cfg, restored[entry], int(restored["step"])

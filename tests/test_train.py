@@ -897,6 +897,73 @@ def test_load_trained_picks_a_saved_step(tmp_path):
         load_trained(workdir, 5)
 
 
+def _saved_entries(folder: str) -> str:
+    """The text of orbax's tree metadata of a saved step (its entries' key paths)."""
+    paths = [os.path.join(d, "_METADATA") for d, _, files in os.walk(folder)
+             if "_METADATA" in files]
+    assert paths, f"no orbax metadata under {folder}"
+    return "".join(open(p).read() for p in paths)
+
+
+def test_ema_averages_every_steps_parameters_resumes_and_is_what_the_workdir_gives(
+        tiny_train_cache, small_scenes, tmp_path):
+    """With `ema_decay` d the state carries a_k = d a_(k-1) + (1 - d) p_k from the starting
+    parameters (the recurrence in numpy over the steps' own parameters), in buffers of its
+    own (the donating step takes both); a checkpoint keeps it and a resumed step continues
+    it; `load_params` (what score, sample, export-model and --init-from read) gives it, and
+    without `ema_decay` the last parameters, saved without an `ema` entry."""
+    from scenegen_jax.checkpoint import Checkpointer
+    from scenegen_jax.train.loop import load_trained, save_or_check_config
+    from scenegen_jax.workdir import load_params
+
+    cfg = CFG.replace(ema_decay=0.75)
+    step = make_train_step(cfg)
+    batch = _batch(tiny_train_cache, small_scenes)
+    state = init_state(cfg)
+    average = [np.asarray(x) for x in jax.tree.leaves(state.params)]
+    saved_at_two = None
+    for k in range(3):
+        state, _ = step(state, batch)
+        average = [0.75 * a + 0.25 * np.asarray(p)
+                   for a, p in zip(average, jax.tree.leaves(state.params), strict=True)]
+        if k == 1:
+            workdir = str(tmp_path / "ema")
+            save_or_check_config(workdir, cfg)
+            ckpt = Checkpointer(os.path.join(workdir, "checkpoints"), every=1)
+            ckpt.save(state, force=True)
+            ckpt.close()
+            saved_at_two = [a.copy() for a in average]
+    for a, e in zip(jax.tree.leaves(state.ema), average, strict=True):
+        np.testing.assert_allclose(a, e, rtol=1e-6, atol=1e-7)
+    moved = [np.abs(np.asarray(e) - np.asarray(p)).max()
+             for e, p in zip(jax.tree.leaves(state.ema), jax.tree.leaves(state.params),
+                             strict=True)]
+    assert max(moved) > 1e-4, "the average lags the parameters"
+
+    cfg_read, params, at = load_params(workdir)
+    assert at == 2 and cfg_read.ema_decay == 0.75
+    for a, e in zip(jax.tree.leaves(params), saved_at_two, strict=True):
+        np.testing.assert_allclose(a, e, rtol=1e-6, atol=1e-7)
+    _, resumed = load_trained(workdir)
+    resumed, _ = step(resumed, batch)
+    for a, e in zip(jax.tree.leaves(resumed.ema), jax.tree.leaves(state.ema), strict=True):
+        np.testing.assert_allclose(a, e, rtol=1e-6, atol=1e-7)
+
+    plain = str(tmp_path / "plain")
+    save_or_check_config(plain, CFG)
+    ckpt = Checkpointer(os.path.join(plain, "checkpoints"), every=1)
+    ckpt.save(state._replace(ema=None, step=jnp.asarray(7, jnp.int32)), force=True)
+    ckpt.close()
+    assert "('ema'," in _saved_entries(os.path.join(workdir, "checkpoints", "2"))
+    assert "('ema'," not in _saved_entries(os.path.join(plain, "checkpoints", "7"))
+    _, params, _ = load_params(plain)
+    for a, e in zip(jax.tree.leaves(params), jax.tree.leaves(state.params), strict=True):
+        np.testing.assert_array_equal(a, e)
+    assert load_trained(plain)[1].ema is None
+    with pytest.raises(ValueError, match=r"ema_decay: must be in \[0, 1\), got 1.0"):
+        CFG.replace(ema_decay=1.0)
+
+
 def test_compile_cache_is_written_where_configured(tmp_path):
     script = """
 import json, os, jax, jax.numpy as jnp

@@ -34,6 +34,7 @@ from scenegen_jax.train.step import (
     init_state,
     make_optimizer,
     resolve_remat,
+    start_ema,
 )
 from scenegen_jax.workdir import CHECKPOINTS, CONFIG_FILE, load_params, load_workdir_config
 
@@ -200,7 +201,8 @@ def train(
         source_cfg, source = start_params(init_from)
         params = warm_start(state.params, source, init_from, cfg.map_channels,
                             source_cfg.map_channels, fresh=reframed(cfg, source_cfg))
-        state = state._replace(params=params, opt_state=make_optimizer(cfg).init(params))
+        state = state._replace(params=params, opt_state=make_optimizer(cfg).init(params),
+                               ema=start_ema(cfg, params))
         log.info("starting from the parameters of %s", init_from)
     state = jax.device_put(state, replicated)
     start = int(state.step)

@@ -51,12 +51,32 @@ class TrainState(NamedTuple):
     params: network parameters.
     opt_state: optimizer state.
     key: uint32 [2] raw base key; step keys are fold_in(key, step).
+    ema: the parameters' moving average with `ema_decay` (`update_ema`); None without it
+      (nothing saved: `checkpoint.Checkpointer`).
     """
 
     step: jnp.ndarray
     params: Any
     opt_state: Any
     key: jnp.ndarray
+    ema: Any = None
+
+
+def start_ema(cfg: Config, params):
+    """The moving average a run starting from `params` begins with: a copy of them (its own
+    buffers: a train step donates both), or None without `ema_decay`."""
+    if cfg.ema_decay == 0:
+        return None
+    return jax.tree.map(lambda x: jnp.array(x, copy=True), params)
+
+
+def update_ema(cfg: Config, ema, params):
+    """d * ema + (1 - d) * params with d = `ema_decay`, in the parameters' dtypes; None stays
+    None."""
+    if ema is None:
+        return None
+    d = cfg.ema_decay
+    return jax.tree.map(lambda e, p: (d * e + (1 - d) * p).astype(e.dtype), ema, params)
 
 
 def make_optimizer(cfg: Config) -> optax.GradientTransformation:
@@ -130,6 +150,7 @@ def init_state(cfg: Config, seed: int | None = None) -> TrainState:
             params=params,
             opt_state=make_optimizer(cfg).init(params),
             key=jax.random.key_data(base),
+            ema=start_ema(cfg, params),
         )
 
     key = jax.random.key(cfg.seed if seed is None else seed)
@@ -175,13 +196,15 @@ def _step_inputs(state: TrainState, batch: Batch, cfg: Config, axis: str | None)
 
 def _apply_grads(state: TrainState, cfg: Config, unrolled, grads, devices, axis: str | None):
     """(next state, stats): the loss and stats of the unrolled terms, summed with the
-    gradient over the devices in one all-reduce (`axis`), and the optimizer's update."""
+    gradient over the devices in one all-reduce (`axis`), the optimizer's update and the
+    moving average's (`update_ema`)."""
     loss, stats = mean_nll(unrolled)
     grads, stats, loss = _psum_packed((grads, stats, loss / devices), axis)
     updates, opt_state = make_optimizer(cfg).update(grads, state.opt_state, state.params)
     params = optax.apply_updates(state.params, updates)
     stats = {**stats, "loss": loss, "grad_norm": optax.tree.norm(grads)}
-    return TrainState(state.step + 1, params, opt_state, state.key), stats
+    ema = update_ema(cfg, state.ema, params)
+    return TrainState(state.step + 1, params, opt_state, state.key, ema), stats
 
 
 def train_step(
