@@ -26,6 +26,8 @@ from scenegen_jax.config import PRESETS, Config, get_config
         ({"learning_rate": "-1e-3"}, "learning_rate: must be a finite number > 0"),
         ({"grad_clip": "nan"}, "grad_clip: must be a finite number >= 0"),
         ({"map_dropout": "1.5"}, "map_dropout: must be in"),
+        ({"ema_decay": "1"}, r"ema_decay: must be in \[0, 1\), got 1.0"),
+        ({"ema_decay": "-0.5"}, r"ema_decay: must be in \[0, 1\)"),
         ({"map_layers": "lanes,roads"}, "map_layers: unknown groups"),
         ({"orientation_bins": "-2"}, "orientation_bins: must be an integer >= 0"),
         ({"orientation_bins": "8", "map_layers": "drivable"},
