@@ -5,9 +5,9 @@
     .venv/bin/python experiments/interpolate.py --start experiments/pretrained_run \
         --tuned runs/ema70 --alpha 0.25 0.5 0.75 --out runs/wise_map
 
-writes runs/wise_map/a0.25/ and so on. START and TUNED are training workdirs (their latest
-checkpoint, or the moving average of a run with `ema_decay`) or pretrained directories; they
-must be the same model: every field but the training-only ones equal (`Config.inference`),
+writes runs/wise_map/a0.25/ and so on. START is a training workdir (its latest checkpoint) or a
+pretrained model, as `--init-from` takes it; TUNED is the fine-tune's workdir (its latest
+checkpoint, or the moving average of a run with `ema_decay`). They must be the same model: every field but the training-only ones equal (`Config.inference`),
 so that their parameter trees match. The written config is START's.
 """
 
@@ -19,16 +19,9 @@ import os
 
 import jax
 
-from scenegen_jax.pretrained import MANIFEST_FILE, load_pretrained, save_pretrained
+from scenegen_jax.pretrained import save_pretrained
+from scenegen_jax.train.loop import start_params
 from scenegen_jax.workdir import load_params
-
-
-def load(path: str):
-    """(config, parameters, step) of a pretrained directory or a training workdir."""
-    if os.path.isfile(os.path.join(path, MANIFEST_FILE)):
-        cfg, params, manifest = load_pretrained(path)
-        return cfg, params, manifest["step"]
-    return load_params(path)
 
 
 def interpolate(start, tuned, alpha: float):
@@ -38,8 +31,8 @@ def interpolate(start, tuned, alpha: float):
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--start", required=True, help="workdir or pretrained directory")
-    ap.add_argument("--tuned", required=True, help="workdir or pretrained directory")
+    ap.add_argument("--start", required=True, help="workdir or pretrained model")
+    ap.add_argument("--tuned", required=True, help="the fine-tune's workdir")
     ap.add_argument("--alpha", type=float, nargs="+", required=True,
                     help="weights of TUNED, each in [0, 1]")
     ap.add_argument("--location-temperature", type=float, default=0.7,
@@ -49,14 +42,14 @@ def main() -> None:
     for a in args.alpha:
         if not 0.0 <= a <= 1.0:
             raise SystemExit(f"--alpha {a}: must lie in [0, 1]")
-    cfg_s, start, step_s = load(args.start)
-    cfg_t, tuned, step_t = load(args.tuned)
+    cfg_s, start = start_params(args.start)
+    cfg_t, tuned, step_t = load_params(args.tuned)
     if cfg_s.inference() != cfg_t.inference():
         raise SystemExit(f"{args.start} and {args.tuned}: not the same model (configs differ "
                          "beyond the training-only fields)")
     for a in args.alpha:
         out = os.path.join(args.out, f"a{a:g}")
-        source = f"{a:g} x {args.tuned} (step {step_t}) + {1 - a:g} x {args.start} (step {step_s})"
+        source = f"{a:g} x {args.tuned} (step {step_t}) + {1 - a:g} x {args.start}"
         manifest = save_pretrained(out, cfg_s, interpolate(start, tuned, a), step_t, source,
                                    {"location_temperature": args.location_temperature})
         print(json.dumps({"out": out, **manifest}))
