@@ -5,7 +5,8 @@
     .venv/bin/python experiments/interpolate.py --start experiments/pretrained_run \
         --tuned runs/ema70 --alpha 0.25 0.5 0.75 --out runs/wise_map
 
-writes runs/wise_map/a0.25/ and so on. START is a training workdir (its latest checkpoint) or a
+writes runs/wise_map/a0.25/ and so on; `--keep NAME ...` takes those top-level parameters
+from START unchanged (e.g. its box MLP). START is a training workdir (its latest checkpoint) or a
 pretrained model, as `--init-from` takes it; TUNED is the fine-tune's workdir (its latest
 checkpoint, or the moving average of a run with `ema_decay`). They must be the same model: every field but the training-only ones equal (`Config.inference`),
 so that their parameter trees match. The written config is START's.
@@ -24,9 +25,14 @@ from scenegen_jax.train.loop import start_params
 from scenegen_jax.workdir import load_params
 
 
-def interpolate(start, tuned, alpha: float):
-    """(1 - alpha) * start + alpha * tuned, leaf by leaf (same tree structure and shapes)."""
-    return jax.tree.map(lambda a, b: (1.0 - alpha) * a + alpha * b, start, tuned)
+def interpolate(start: dict, tuned: dict, alpha: float, keep: tuple[str, ...] = ()) -> dict:
+    """(1 - alpha) * start + alpha * tuned, leaf by leaf (same tree structure and shapes),
+    except the top-level parameters named in `keep`, which stay start's."""
+    return {
+        name: start[name] if name in keep
+        else jax.tree.map(lambda a, b: (1.0 - alpha) * a + alpha * b, start[name], tuned[name])
+        for name in start
+    }
 
 
 def main() -> None:
@@ -35,6 +41,9 @@ def main() -> None:
     ap.add_argument("--tuned", required=True, help="the fine-tune's workdir")
     ap.add_argument("--alpha", type=float, nargs="+", required=True,
                     help="weights of TUNED, each in [0, 1]")
+    ap.add_argument("--keep", nargs="+", default=[], metavar="NAME",
+                    help="top-level parameters taken from START unchanged (e.g. the box MLP's "
+                    "box0_b box0_map_w ...)")
     ap.add_argument("--location-temperature", type=float, default=0.7,
                     help="the sampler setting recorded in each manifest")
     ap.add_argument("--out", required=True)
@@ -47,10 +56,17 @@ def main() -> None:
     if cfg_s.inference() != cfg_t.inference():
         raise SystemExit(f"{args.start} and {args.tuned}: not the same model (configs differ "
                          "beyond the training-only fields)")
+    unknown = sorted(set(args.keep) - set(start))
+    if unknown:
+        raise SystemExit(f"--keep {' '.join(unknown)}: no such parameters; the model has "
+                         f"{' '.join(sorted(start))}")
     for a in args.alpha:
         out = os.path.join(args.out, f"a{a:g}")
         source = f"{a:g} x {args.tuned} (step {step_t}) + {1 - a:g} x {args.start}"
-        manifest = save_pretrained(out, cfg_s, interpolate(start, tuned, a), step_t, source,
+        if args.keep:
+            source += f", {' '.join(args.keep)} from {args.start}"
+        params = interpolate(start, tuned, a, tuple(args.keep))
+        manifest = save_pretrained(out, cfg_s, params, step_t, source,
                                    {"location_temperature": args.location_temperature})
         print(json.dumps({"out": out, **manifest}))
 
