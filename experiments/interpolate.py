@@ -6,10 +6,11 @@
         --tuned runs/ema70 --alpha 0.25 0.5 0.75 --out runs/wise_map
 
 writes runs/wise_map/a0.25/ and so on; `--keep NAME ...` takes those top-level parameters
-from START unchanged (e.g. its box MLP). START is a training workdir (its latest checkpoint) or a
-pretrained model, as `--init-from` takes it; TUNED is the fine-tune's workdir (its latest
-checkpoint, or the moving average of a run with `ema_decay`). They must be the same model: every field but the training-only ones equal (`Config.inference`),
-so that their parameter trees match. The written config is START's.
+from START unchanged (e.g. its box MLP). START is a training workdir (its latest checkpoint)
+or a pretrained model, as `--init-from` takes it; TUNED is the fine-tune's workdir (its
+latest checkpoint, or the moving average of a run with `ema_decay`). They must be the same
+model: every field but the training-only ones equal (`Config.inference`), so that their
+parameter trees match. The written config is START's.
 """
 
 from __future__ import annotations
