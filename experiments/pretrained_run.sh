@@ -14,7 +14,9 @@
 # steps (session 68 ran the same `scenegen train` with LD_PRELOAD of tcmalloc):
 #   git worktree add /tmp/p12 f81cb43; INIT_FROM=/tmp/p12/experiments/pretrained_run \
 #       experiments/pretrained_run.sh 300 1
-# Its step 300 is the shipped cpu-av2-womd (experiments/results/README.md, session 68). The
+# Its step 300 was the shipped cpu-av2-womd in sessions 68-71 (experiments/results/README.md,
+# session 68); experiments/finetune_run.sh takes it and the no-map run's last phase on to the
+# model shipped since session 72 (the fourteenth to sixteenth phases). The
 # location term reads no box weight, so the no-map twin needs no thirteenth phase: both
 # models' location NLL is the twelfth phase's to the last digit. The no-map run's last phase
 # is the twelfth: only the `dataset` layers' weights (`train_layers=dataset`), from the
@@ -85,15 +87,8 @@ cd "$(dirname "$0")/.."
 STEPS=${1:-20000}
 CORE=${2:-1}
 MINUTES=${3:-}
-SHARED=../shared/data
 BIN=.venv/bin
-prep() {  # SOURCE ROOT SPLIT OUT [prepare options]
-    [ -f "$4/meta.json" ] || $BIN/scenegen prepare --source "$1" --root "$2" --split "$3" \
-        --out "$4" --config cpu --workers 2 "${@:5}"
-}
-prep av2 "$SHARED/av2_sensor_mini" train runs/cache_cpu_av2_train --stride 1
-prep womd_json "$SHARED/womd_mini/gpudrive_json" train runs/cache_cpu_womdjson_train
-prep scenarionet "$SHARED/womd_mini/scenarionet" train runs/cache_cpu_womdpkl_train
+experiments/train_caches.sh
 # Each run's last phase: for the no-map run the twelfth (the `dataset` layers' weights only,
 # peak learning rate 1e-3, decay over 250 steps); for the map run the thirteenth (the box
 # MLP's weights only, peak 3e-3, decay over 250 steps).
