@@ -12,7 +12,8 @@
 #      (experiments/interpolate.py --keep), on all three training caches, as the thirteenth
 #      phase trained it: peak 3e-3, cosine decay over 250 steps, seed 71, 300 steps, both
 #      cores: experiments/finetune_run/box;
-#  16. no training: the thirteenth phase's heading MLP in place of the fifteenth's.
+#  16. no training: the thirteenth phase's heading and class MLPs in place of the fifteenth's
+#      (the class MLP since session 72).
 # Session 71 ran these commands (with LD_PRELOAD of tcmalloc, as here when it is installed):
 # 7.2 s per step for the fourteenth phase (one core each) and 3.7 s for the fifteenth (both),
 # AMD EPYC Zen 3 (AVX2). Rerun from scratch: rm -r experiments/finetune_run first.
@@ -31,8 +32,8 @@ WOMD="$PWD/runs/cache_cpu_womdjson_train $PWD/runs/cache_cpu_womdpkl_train"
 MAP="map_layers=lanes,drivable,crosswalks,nearest_lane,dataset attribute_map_input=true"
 MAP="$MAP attribute_map_skip=true heading_lane_frame=true"
 BOX=(box0_b box0_map_w box0_w box1_b box1_w box2_b box2_map_w box2_w)
-HEADING=(heading0_b heading0_map_w heading0_w heading1_b heading1_w heading2_b heading2_map_w
-         heading2_w)
+PHASE13=(heading0_b heading0_map_w heading0_w heading1_b heading1_w heading2_b heading2_map_w
+         heading2_w class_mlp0 class_mlp1 class_mlp2)
 train() {  # CORES WORKDIR INIT STEPS "SET FIELDS" CACHE...
     taskset -c "$1" $BIN/scenegen train --config cpu --set coord_channels=true \
         order_channel=true separate_attribute_mlps=true $5 warmup_steps=50 seed=71 \
@@ -49,4 +50,4 @@ train 0,1 $RUN/box "$OUT/box_start/a1" 300 \
     "$MAP train_params=$(IFS=,; echo "${BOX[*]}") learning_rate=3e-3 decay_steps=250" \
     "$AV2" $WOMD
 $BIN/python experiments/interpolate.py --start experiments/pretrained_run --tuned $RUN/box \
-    --alpha 1 --keep "${HEADING[@]}" --out "$OUT"
+    --alpha 1 --keep "${PHASE13[@]}" --out "$OUT"
