@@ -42,8 +42,11 @@ train() {  # CORES WORKDIR INIT STEPS "SET FIELDS" CACHE...
 }
 FT="learning_rate=3e-4 decay_steps=0 ema_decay=0.99"
 train 0 $RUN/map experiments/pretrained_run 400 "$MAP $FT" $WOMD &
+MAP_RUN=$!
 train 1 $RUN/nomap experiments/nomap_run 400 "map_layers=dataset $FT" $WOMD &
-wait
+NOMAP_RUN=$!
+wait $MAP_RUN
+wait $NOMAP_RUN
 $BIN/python experiments/interpolate.py --start experiments/pretrained_run --tuned $RUN/map \
     --alpha 1 --keep "${BOX[@]}" --out "$OUT/box_start"
 train 0,1 $RUN/box "$OUT/box_start/a1" 300 \
