@@ -497,7 +497,8 @@ def cpu_ours(args) -> list[dict]:
     rows += ours("score", steps=25, batch=8, runs=r, **cpu)
     if args.workdir and not os.path.isdir(os.path.join(args.workdir, "checkpoints")):
         rows.append({"what": "skipped", "reason": f"{args.workdir}: no trained model; train "
-                     "the cpu model (experiments/results/README.md) to time its sampling"})
+                     "the cpu model (experiments/results/README.md, 'Training budget': "
+                     "runs/cpu_map and runs/cache_cpu_val) to time its sampling"})
     elif args.workdir:
         for b in (1, 32):
             rows += ours("sample", batch=b, runs=big, workdir=args.workdir, data=args.data,

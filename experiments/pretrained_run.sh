@@ -11,9 +11,10 @@
 # from; the no-map run's only layers). The thirteenth phase (session 68) trains only the box
 # MLP's weights (`train_params=box0_b,...`), from the twelfth phase's step 300 (the model
 # shipped in sessions 33-67): peak learning rate 3e-3, decay over 250 steps, seed 70, 300
-# steps (session 68 ran the same `scenegen train` with LD_PRELOAD of tcmalloc):
-#   git worktree add /tmp/p12 f81cb43; INIT_FROM=/tmp/p12/experiments/pretrained_run \
-#       experiments/pretrained_run.sh 300 1
+# steps (session 68 ran the same `scenegen train` with LD_PRELOAD of tcmalloc); the committed
+# experiments/pretrained_run already holds its step 300, so move it aside first:
+#   git worktree add /tmp/p12 f81cb43; mv experiments/pretrained_run runs/phase13; \
+#       INIT_FROM=/tmp/p12/experiments/pretrained_run experiments/pretrained_run.sh 300 1
 # Its step 300 was the shipped cpu-av2-womd in sessions 68-71 (experiments/results/README.md,
 # session 68); experiments/finetune_run.sh takes it and the no-map run's last phase on to the
 # model shipped since session 72 (the fourteenth to sixteenth phases). The

@@ -90,8 +90,8 @@ def add_parsers(sub) -> None:
                     "frame per second)")
     sp.add_argument("--workers", type=int, help="processes (default: one per core)")
     sp.add_argument("--shard", metavar="I/N",
-                    help="prepare only part I of N of the files, into OUT/shard-I-of-N/ (N "
-                    "jobs, e.g. a SLURM array, make one cache that every command reads)")
+                    help="prepare only part I of N of the files, into OUT/shard-0000I-of-0000N/ "
+                    "(N jobs, e.g. a SLURM array, make one cache that every command reads)")
     sp.add_argument("--strict", action="store_true",
                     help="stop at the first unusable file instead of skipping and counting it")
     sp.add_argument("--set", nargs="*", metavar="FIELD=VALUE", help="config overrides")

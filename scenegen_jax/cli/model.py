@@ -1,5 +1,5 @@
-"""Models: `scenegen train`, `export-model` and `models`, and loading a model for the other
-commands (`--pretrained` or `--workdir`)."""
+"""Models: `scenegen train`, `export-model` and `models` (the other commands load a model with
+`common.load_model`, from `--pretrained` or `--workdir`)."""
 
 from __future__ import annotations
 
