@@ -31,6 +31,13 @@ stand in a few crowded ones. `off_share_before_any_off` and `off_share_after_one
 with its count of actors) split the actors within 40 m by whether an earlier one of their
 scene in canonical order stands off the drivable area: a model that has put one vehicle in a
 parking lot puts the next ones there too.
+
+`--by-place` splits the counted actors by where they stand: on a lane (the lane orientation
+channels, as `scenegen evaluate`'s lane alignment), on the drivable area off the lanes, off it
+by at most `NEAR_M` (a car at the kerb) and further off (a lot or a driveway), with the share
+of each that stands still (speed at most the config's `zero_speed`, the model's v = 0 point
+mass). With `--by-log` each log gets the split too: the Argoverse 2 logs disagree on whether a
+parking area is drawn as drivable area.
 """
 
 from __future__ import annotations
@@ -43,20 +50,23 @@ from scipy.ndimage import distance_transform_edt
 
 from scenegen_jax.config import Config
 from scenegen_jax.data.cache import load_cache
-from scenegen_jax.raster.map import ALL_MAP_CHANNELS
+from scenegen_jax.raster.map import ALL_MAP_CHANNELS, ORIENTATION_CHANNELS
 from scenegen_jax.scene import CLASS_NAMES, VEHICLE, bin_index
 
 RADIUS_M = 40.0
 PERCENTILES = (25, 50, 75, 90)
+NEAR_M = 3.0  # off the drivable area by at most this: at the kerb, not in a lot
+PLACES = ("on_lane", "on_drivable_off_lanes", "off_drivable_near", "off_drivable_far")
 
 
 def sampled_scenes(samples_path: str, cls: str):
-    """(map index, [(x, y)] of the actors of class `cls`) of each scene of a samples JSONL."""
+    """(map index, [(x m, y m, speed m/s)] of the actors of class `cls`) of each scene of a
+    samples JSONL."""
     with open(samples_path) as f:
         for line in f:
             scene = json.loads(line)
-            yield scene["map_index"], [(a["x"], a["y"]) for a in scene["actors"]
-                                       if a["class"] == cls]
+            yield scene["map_index"], [(a["x"], a["y"], float(np.hypot(a["vx"], a["vy"])))
+                                       for a in scene["actors"] if a["class"] == cls]
 
 
 def real_scenes(cache, cls: str):
@@ -64,24 +74,33 @@ def real_scenes(cache, cls: str):
     actors = cache.actors
     for i in range(len(cache)):
         sel = np.asarray(actors.valid[i]) & (np.asarray(actors.cls[i]) == CLASS_NAMES.index(cls))
-        yield i, [tuple(p) for p in np.asarray(actors.position[i], np.float64)[sel]]
+        position = np.asarray(actors.position[i], np.float64)[sel]
+        speed = np.linalg.norm(np.asarray(actors.velocity[i], np.float64)[sel], axis=-1)
+        yield i, [(x, y, s) for (x, y), s in zip(position, speed, strict=True)]
 
 
-def scene_distances(cache, map_index: int, positions) -> list[float | None]:
-    """Each position's distance (m) to the nearest drivable pixel of map `map_index`'s canvas
-    (0 on it), or None when it is not counted: `RADIUS_M` or more from the ego, or off the
-    canvas."""
+def scene_cells(cache, map_index: int, actors) -> list[tuple[float, bool] | None]:
+    """For each (x, y, speed) of `actors`: its distance (m) to the nearest drivable pixel of map
+    `map_index`'s canvas (0 on it) and whether it stands on a lane, or None when it is not
+    counted: `RADIUS_M` or more from the ego, or off the canvas."""
     m = float(cache.meta["m_per_px"])
-    road = np.asarray(cache.maps[map_index][..., ALL_MAP_CHANNELS.index("drivable_area")]) >= 0.5
+    canvas = np.asarray(cache.maps[map_index])
+    road = canvas[..., ALL_MAP_CHANNELS.index("drivable_area")] >= 0.5
+    lane = np.hypot(*(canvas[..., ALL_MAP_CHANNELS.index(c)] for c in ORIENTATION_CHANNELS)) > 0.5
     half = road.shape[0] * m / 2
     distance = distance_transform_edt(~road) * m
     out = []
-    for x, y in positions:
+    for x, y, _ in actors:
         row, col = int((half - y) // m), int((x + half) // m)
         counted = (np.hypot(x, y) < RADIUS_M and 0 <= row < road.shape[0]
                    and 0 <= col < road.shape[1])
-        out.append(float(distance[row, col]) if counted else None)
+        out.append((float(distance[row, col]), bool(lane[row, col])) if counted else None)
     return out
+
+
+def scene_distances(cache, map_index: int, actors) -> list[float | None]:
+    """The distances of `scene_cells`."""
+    return [None if c is None else c[0] for c in scene_cells(cache, map_index, actors)]
 
 
 def road_distances(cache, scenes) -> list[list[float | None]]:
@@ -96,14 +115,14 @@ def counted(distances: list[float | None]) -> np.ndarray:
     return np.array([x for x in distances if x is not None])
 
 
-def canonical_positions(cache, positions: list) -> list:
-    """`positions` sorted by ascending bin of the cache's model grid (`scene.bin_index`: the
-    canonical order in which the model samples them)."""
+def canonical_positions(cache, actors: list) -> list:
+    """`actors` (x, y, speed) sorted by ascending bin of the cache's model grid
+    (`scene.bin_index`: the canonical order in which the model samples them)."""
     cfg = Config(grid_size=int(cache.meta["grid_size"]), m_per_px=float(cache.meta["m_per_px"]))
-    if not positions:
+    if not actors:
         return []
-    key = np.asarray(bin_index(np.asarray(positions, np.float32), cfg))
-    return [positions[i] for i in np.argsort(key, kind="stable")]
+    key = np.asarray(bin_index(np.asarray(actors, np.float32)[:, :2], cfg))
+    return [actors[i] for i in np.argsort(key, kind="stable")]
 
 
 def by_order(per_scene: list[list[float | None]], group: int, groups: int = 4) -> list[dict]:
@@ -142,17 +161,38 @@ def cascade(per_scene: list[np.ndarray]) -> dict:
             for name, sel in (("before_any_off", ~after), ("after_one_off", after))}
 
 
-def by_log(cache, scenes, per_scene: list[np.ndarray]) -> dict:
-    """The share on the drivable area, `concentration` and `cascade` of each log's scenes."""
+def by_place(cache, scenes, still_mps: float) -> dict:
+    """Of the counted actors of `scenes`, the share in each of `PLACES` and, of those, the share
+    standing still (speed <= `still_mps`)."""
+    count, still = np.zeros(len(PLACES)), np.zeros(len(PLACES))
+    for map_index, actors in scenes:
+        for cell, (_, _, speed) in zip(scene_cells(cache, map_index, actors), actors, strict=True):
+            if cell is not None:
+                distance, on_lane = cell
+                k = (0 if on_lane else 1) if distance == 0 else (2 if distance <= NEAR_M else 3)
+                count[k] += 1
+                still[k] += speed <= still_mps
+    total = max(count.sum(), 1)
+    return {name: {"share": round(float(c / total), 4),
+                   "still_share": round(float(s / c), 3) if c else None}
+            for name, c, s in zip(PLACES, count, still, strict=True)}
+
+
+def by_log(cache, scenes, per_scene: list[np.ndarray], still_mps: float | None) -> dict:
+    """The share on the drivable area, `concentration` and `cascade` of each log's scenes, and
+    their `by_place` unless `still_mps` is None."""
     logs = {}
-    for (map_index, _), d in zip(scenes, per_scene, strict=True):
-        logs.setdefault(cache.scene_ids[map_index].split("/")[0], []).append(d)
+    for scene, d in zip(scenes, per_scene, strict=True):
+        logs.setdefault(cache.scene_ids[scene[0]].split("/")[0], []).append((scene, d))
     out = {}
-    for log, part in logs.items():
+    for log, pairs in logs.items():
+        part = [d for _, d in pairs]
         every = np.concatenate(part)
         out[log] = {"scenes": len(part), "actors": len(every),
                     "on_drivable_share": round(float(np.mean(every == 0)), 4) if len(every)
                     else None, **concentration(part), **cascade(part)}
+        if still_mps is not None:
+            out[log]["by_place"] = by_place(cache, [s for s, _ in pairs], still_mps)
     return out
 
 
@@ -170,8 +210,12 @@ def main() -> None:
                         help="also the share by place in canonical order, in groups of N")
     parser.add_argument("--by-log", action="store_true",
                         help="also the share by log (the scene id's part before its first /)")
+    parser.add_argument("--by-place", action="store_true",
+                        help="also the share on a lane, on the drivable area off the lanes, off "
+                             f"it within {NEAR_M:g} m and further, with the share standing still")
     args = parser.parse_args()
     cache = load_cache(args.cache)
+    still_mps = float(cache.meta["config"]["zero_speed"]) if args.by_place else None
     scenes = list(sampled_scenes(args.samples, args.cls) if args.samples
                   else real_scenes(cache, args.cls))
     in_order = road_distances(cache, scenes)
@@ -186,7 +230,10 @@ def main() -> None:
                       "share_within_one_pixel": round(float(np.mean(d <= m * 2**0.5)), 4)
                       if len(d) else None,
                       **concentration(per_scene), **cascade(per_scene),
-                      **({"by_log": by_log(cache, scenes, per_scene)} if args.by_log else {}),
+                      **({"by_place": by_place(cache, scenes, still_mps)}
+                         if args.by_place else {}),
+                      **({"by_log": by_log(cache, scenes, per_scene, still_mps)}
+                         if args.by_log else {}),
                       **({"by_order": by_order(in_order, args.by_order)}
                          if args.by_order else {})}))
 
