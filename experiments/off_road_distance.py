@@ -32,9 +32,9 @@ with its count of actors) split the actors within 40 m by whether an earlier one
 scene in canonical order stands off the drivable area: a model that has put one vehicle in a
 parking lot puts the next ones there too.
 
-`--by-place` splits the counted actors by where they stand: on a lane (the lane orientation
-channels, as `scenegen evaluate`'s lane alignment), on the drivable area off the lanes, off it
-by at most `NEAR_M` (a car at the kerb) and further off (a lot or a driveway), with the share
+`--by-place` splits the counted actors by where they stand: on the drivable area and on a
+lane (the lane orientation channels, as `scenegen evaluate`'s lane alignment), on the
+drivable area off the lanes, off it by at most `NEAR_M` (a car at the kerb) and further off (a lot or a driveway), with the share
 of each that stands still (speed at most the config's `zero_speed`, the model's v = 0 point
 mass). With `--by-log` each log gets the split too: the Argoverse 2 logs disagree on whether a
 parking area is drawn as drivable area.
