@@ -34,10 +34,10 @@ parking lot puts the next ones there too.
 
 `--by-place` splits the counted actors by where they stand: on the drivable area and on a
 lane (the lane orientation channels, as `scenegen evaluate`'s lane alignment), on the
-drivable area off the lanes, off it by at most `NEAR_M` (a car at the kerb) and further off (a lot or a driveway), with the share
-of each that stands still (speed at most the config's `zero_speed`, the model's v = 0 point
-mass). With `--by-log` each log gets the split too: the Argoverse 2 logs disagree on whether a
-parking area is drawn as drivable area.
+drivable area off the lanes, off it by at most `NEAR_M` (a car at the kerb) and further off
+(a lot or a driveway), with the share of each that stands still (speed at most the config's
+`zero_speed`, the model's v = 0 point mass). With `--by-log` each log gets the split too: the
+Argoverse 2 logs disagree on whether a parking area is drawn as drivable area.
 """
 
 from __future__ import annotations
