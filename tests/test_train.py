@@ -749,9 +749,17 @@ def test_orientation_bins_tell_lane_directions_apart_and_start_at_zero_from_a_wa
     east[0, 10:14, :, ic], west[0, 10:14, :, ic] = 1.0, -1.0
     assert is_ != ic
     params = init_state(binned, seed=2).params
-    gates = [net.apply({"params": params}, jnp.asarray(m), method=SceneGenNet.map_gates)
-             for m in (east, west)]
-    assert float(jnp.abs(gates[0] - gates[1])[0, 12].max()) > 1e-3
+
+    def gate_gap(p):  # how far apart the east and west lanes' gates are on the lane
+        east_g, west_g = (net.apply({"params": p}, jnp.asarray(m), method=SceneGenNet.map_gates)
+                          for m in (east, west))
+        return float(jnp.abs(east_g - west_g)[0, 12].max())
+
+    # The raw cos channel differs too (+1 against -1): without the map convolution's weights
+    # only the sectors can tell the two apart, and without the sectors' weights nothing can.
+    no_map = {**params, "lstm1_map": jnp.zeros_like(params["lstm1_map"])}
+    assert gate_gap(no_map) > 1e-3
+    assert gate_gap({**no_map, "lstm1_orient": jnp.zeros_like(params["lstm1_orient"])}) == 0.0
 
     source = init_state(CFG, seed=1).params
     extended = warm_start(params, source, "src")
