@@ -115,17 +115,21 @@ def test_sdc_marker_and_estimate():
     data = _scene(False, sdc=2)
     frames, _ = W.frames_from_scenario(data, "x.json", 10)
     np.testing.assert_allclose(frames[0].ego_velocity, [12.0, 0.0])
-    # No marker: the vehicle whose farthest other object is nearest is the ego (vehicle 1,
-    # in the middle of the others), never one valid at only some steps.
+    # No marker: the vehicle whose farthest other object is nearest, on average over the
+    # steps, is the ego. At t = 0 vehicle 0 at (100, 50) has the pedestrian at (110, 58)
+    # farthest, 12.8 m off; vehicle 1 at (105, 53.5) the cyclist at (90, 45), 17.2 m; vehicle
+    # 2 at (110, 46.5) the cyclist, 20.1 m. Over the 21 steps: 15.9, 19.9 and 27.0 m.
     del data["metadata"]
     tracks, _ = W.read_tracks(data["objects"], "x.json")
-    reach = []
-    for i in range(3):
-        d = np.linalg.norm(tracks.position - tracks.position[i], axis=-1)
-        d = np.where(tracks.valid, d, -np.inf)
-        d[i] = -np.inf
-        reach.append(d.max(axis=0).mean())
-    assert W.estimate_sdc(tracks) == int(np.argmin(reach))
+    assert W.estimate_sdc(tracks) == 0
+    # A vehicle nearer the middle than vehicle 0 becomes the ego, but not once it misses a step.
+    t = np.arange(21) * 0.1
+    middle = np.stack([101 + 8 * t, 48 + 0 * t], 1)  # mean farthest distance 14.5 m, not 15.9
+    data["objects"].append(_object(middle, np.zeros(21), np.tile([8.0, 0], (21, 1)),
+                                   np.ones(21)))
+    assert W.estimate_sdc(W.read_tracks(data["objects"], "x.json")[0]) == 5
+    data["objects"][-1]["valid"][7] = False
+    assert W.estimate_sdc(W.read_tracks(data["objects"], "x.json")[0]) == 0
 
 
 def test_bad_input_names_file_and_field():
@@ -207,19 +211,22 @@ def womd_frames(womd_files):
 
 
 def _direct_counts(path: str, stride: int) -> collections.Counter:
-    """Per class, rows valid at the frame steps, other than the ego, read with json alone."""
+    """Per class, objects valid at the frame steps, other than the ego, counted from the file's
+    own `valid`, `type`, `width` and `length`. The ego is the file's marker where it has one,
+    else the reader's estimate (checked on its own in `test_sdc_marker_and_estimate`)."""
     with open(path) as f:
         data = json.load(f)
-    tracks, _ = W.read_tracks(data["objects"], path)
-    sdc = W.find_sdc(data, tracks, data["objects"], path)
+    objects = data["objects"]
+    assert all(o["type"] in W.CLASS_FROM_TYPE for o in objects)  # object index = track index
+    marker = (data.get("metadata") or {}).get("sdc_track_index")
+    sdc = marker if marker is not None else W.estimate_sdc(W.read_tracks(objects, path)[0])
     out = collections.Counter()
-    for t in range(0, tracks.valid.shape[1], stride):
-        if not tracks.valid[sdc, t]:
+    for t in range(0, len(objects[0]["valid"]), stride):
+        if not objects[sdc]["valid"][t]:
             continue
-        for o, otype in enumerate(tracks.type):
-            ok = tracks.valid[o, t] and o != sdc
-            ok = ok and (otype == "pedestrian" or bool(np.all(tracks.size[o] > 0)))
-            out[W.CLASS_FROM_TYPE[otype]] += int(ok)
+        for o, obj in enumerate(objects):
+            sized = obj["type"] == "pedestrian" or (obj["width"] > 0 and obj["length"] > 0)
+            out[W.CLASS_FROM_TYPE[obj["type"]]] += int(obj["valid"][t] and o != sdc and sized)
     return out
 
 
