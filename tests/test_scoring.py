@@ -11,11 +11,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from reference_unroll import reference_step_terms
 from small import CFG, two_small_scenes
 
 from scenegen_jax.distributions import TERMS
 from scenegen_jax.eval.nll import score_batch, score_cache, worst_scenes
-from scenegen_jax.likelihood.batch import Batch, gather_batch
+from scenegen_jax.likelihood.batch import Batch, crop_batch, gather_batch
 from scenegen_jax.raster.transform import crop_map
 from scenegen_jax.scene import VEHICLE, in_region, pixel_centers
 
@@ -108,6 +109,7 @@ def test_actor_moved_into_a_block_scores_higher_location_nll(tiny_train_cache, s
 def test_score_cli_terms_sum_and_top_k(tiny_train_cache, tmp_path, capsys):
     from scenegen_jax.cli import main
     from scenegen_jax.train.loop import train
+    from scenegen_jax.workdir import load_params
 
     workdir = str(tmp_path / "model")
     train(CFG, tiny_train_cache.path, workdir, steps=2, progress=False)
@@ -128,6 +130,15 @@ def test_score_cli_terms_sum_and_top_k(tiny_train_cache, tmp_path, capsys):
         assert float(row["nll_per_actor"]) == pytest.approx(per_actor, abs=2e-3)
     scene_nll = np.array([float(r["scene_nll"]) for r in rows])
     assert summary["scene_nll"] == pytest.approx(scene_nll.mean(), rel=1e-5)
+    # Each term of the first two rows against the step-by-step reference of the model
+    # (tests/reference_unroll.py) under the checkpoint the command scored with.
+    _, params, _ = load_params(workdir)
+    maps, scene = crop_batch(gather_batch(tiny_train_cache, np.arange(2), CFG), jnp.zeros(2),
+                             CFG)
+    ref = reference_step_terms(params, CFG, maps, scene, None)
+    for i in range(2):
+        for k in TERMS:
+            assert float(rows[i][f"{k}_nll"]) == pytest.approx(-float(ref[k][i].sum()), abs=2e-3)
     # Scenes with more actors in the region than CFG's 6 slots (every one of the tiny cache's)
     # are scored on their first 6, without the stop token.
     pos, half = tiny_train_cache.actors.position, CFG.region_m / 2
