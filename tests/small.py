@@ -67,6 +67,12 @@ def train_cmd(cache, workdir, steps, *extra) -> list[str]:
     return [sys.executable, "-m", "scenegen_jax.cli", *train_args(cache, workdir, steps, *extra)]
 
 
+def metrics_rows(path: str) -> list[str]:
+    """The complete rows of a run's metrics file (a kill may cut its last one short)."""
+    with open(path) as f:
+        return [line for line in f if line.endswith("\n")]
+
+
 def with_xla_flags(env, *flags: str) -> dict:
     """`env` with `flags` added to its XLA_FLAGS, keeping the suite's own (conftest.py)."""
     return {**env, "XLA_FLAGS": " ".join([env.get("XLA_FLAGS", ""), *flags]).strip()}

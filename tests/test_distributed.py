@@ -13,7 +13,13 @@ import time
 import jax
 import numpy as np
 import pytest
-from small import assert_same_adam_training, train_args, train_cmd, with_xla_flags
+from small import (
+    assert_same_adam_training,
+    metrics_rows,
+    train_args,
+    train_cmd,
+    with_xla_flags,
+)
 
 from scenegen_jax import cli
 from scenegen_jax.backend import cpu_cores
@@ -97,13 +103,20 @@ def test_two_process_training_equals_one_process_and_resumes(
     at_kill = int(load_trained(str(pair))[1].step)
     assert 2 <= at_kill <= 6, at_kill
     _assert_same_training(single, str(pair), at_kill)
+    metrics = str(pair / "metrics.jsonl")
+    before = [row for row in metrics_rows(metrics) if json.loads(row)["step"] <= at_kill]
+    assert len(before) == at_kill // 2
 
     _wait(_launch_two_processes(cache, str(pair), at_kill + 2, env, logs), logs)
     assert int(load_trained(str(pair))[1].step) == at_kill + 2
     _assert_same_training(single, str(pair), at_kill + 2)
-    # Process 0 alone writes the metrics: one row per logged step, replayed rows dropped.
-    rows = [json.loads(line)["step"] for line in (pair / "metrics.jsonl").read_text().splitlines()]
-    assert rows == list(range(2, at_kill + 3, 2))
+    # Process 0 alone writes the metrics: one row per logged step, replayed rows dropped; the
+    # rows before the kill stay as written (timings included), so the pair resumed from its
+    # checkpoint rather than starting again, and set none aside as damaged.
+    after = metrics_rows(metrics)
+    assert after[: len(before)] == before
+    assert [json.loads(row)["step"] for row in after] == list(range(2, at_kill + 3, 2))
+    assert not os.path.exists(str(ckpts) + ".damaged")
 
 
 def _launch(argv, env, logs, processes=1):

@@ -17,6 +17,7 @@ from flax.traverse_util import flatten_dict
 from small import (
     CFG,
     assert_same_adam_training,
+    metrics_rows,
     random_params,
     train_args,
     train_cmd,
@@ -1005,12 +1006,6 @@ def test_xla_flags_optimisation_level_wins_over_the_packages(monkeypatch):
     assert "xla_cpu_opt_preset" in train_compiler_options()
 
 
-def _metrics_rows(path: str) -> list[str]:
-    """The complete rows of a metrics file (a kill may cut its last one short)."""
-    with open(path) as f:
-        return [line for line in f if line.endswith("\n")]
-
-
 @pytest.mark.slow
 def test_killed_run_resumes_exactly(tiny_train_cache, tmp_path):
     cache = tiny_train_cache.path
@@ -1039,12 +1034,12 @@ def test_killed_run_resumes_exactly(tiny_train_cache, tmp_path):
     step_at_kill, _ = _params(killed)
     assert 4 <= step_at_kill < steps
     metrics = os.path.join(killed, "metrics.jsonl")
-    before = [row for row in _metrics_rows(metrics) if json.loads(row)["step"] <= step_at_kill]
+    before = [row for row in metrics_rows(metrics) if json.loads(row)["step"] <= step_at_kill]
     assert len(before) == step_at_kill // 2  # a row every 2 steps, each before its checkpoint
     cli.main(train_args(cache, killed, steps))  # resumes from the killed process's checkpoint
     # The killed process's rows stay as it wrote them, timings included: the run went on from
     # its checkpoint (a run started again from step 0 would rewrite them) ...
-    after = _metrics_rows(metrics)
+    after = metrics_rows(metrics)
     assert after[: len(before)] == before
     assert [json.loads(row)["step"] for row in after] == list(range(2, steps + 1, 2))
     assert not os.path.exists(ckpts + ".damaged")  # ... and set no checkpoint aside
