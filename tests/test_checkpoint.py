@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from small import CFG
 
-from scenegen_jax.checkpoint import CHECKSUM_FILE, TMP_MARKER, Checkpointer
+from scenegen_jax.checkpoint import CHECKSUM_FILE, TMP_MARKER, Checkpointer, tree_checksums
 from scenegen_jax.train.loop import load_trained, train
 from scenegen_jax.train.step import init_state
 
@@ -90,6 +90,21 @@ def test_damaged_newest_checkpoint_is_set_aside_and_the_rerun_finishes(
     with open(os.path.join(workdir, "metrics.jsonl")) as f:
         logged = [json.loads(line)["step"] for line in f]
     assert logged == list(range(2, STEPS + 1, 2))
+
+
+def test_tree_checksums_hash_dtype_shape_and_values():
+    import hashlib
+
+    x = np.arange(6, dtype=np.float32).reshape(2, 3)
+    want = hashlib.sha256(b"<f4(2, 3)" + x.tobytes()).hexdigest()
+    assert tree_checksums({"a": x}) == {"['a']": want}
+    changed = x.copy()
+    changed[1, 2] = 5.5  # one value
+    for other in (changed, x.reshape(3, 2), x.view(np.int32)):  # one value, shape, dtype
+        assert tree_checksums({"a": other})["['a']"] != want
+    # A key is hashed as its data: the same key, the same sum; another key, another sum.
+    assert (tree_checksums({"k": jax.random.key(1)}) == tree_checksums({"k": jax.random.key(1)})
+            != tree_checksums({"k": jax.random.key(2)}))
 
 
 def test_changed_array_bytes_are_caught_by_the_checksums(tiny_train_cache, eight_steps, tmp_path,
