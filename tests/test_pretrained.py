@@ -83,10 +83,17 @@ def test_damaged_or_mismatched_files_name_the_file(tmp_path):
         load_pretrained("no-such-model")
 
 
+def test_the_shipped_model_is_installed():
+    # The model the README and `make demo` use; the parametrized test below would skip, not
+    # fail, if no model were found.
+    assert "cpu-av2-womd" in available()
+
+
 @pytest.mark.parametrize("name", available())
 def test_shipped_models_load(name):
     cfg, params, manifest = load_pretrained(name)
     assert manifest["step"] > 0
+    assert sum(np.size(x) for x in jax.tree.leaves(params)) == manifest["parameters"]
     assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(params))
     here = os.path.dirname(os.path.abspath(__file__))
     card = os.path.join(here, "..", "scenegen_jax", "pretrained", name, "MODEL_CARD.md")
