@@ -830,17 +830,18 @@ def test_read_given_checks_each_line_against_the_egos_it_meets(tmp_path):
 
 
 def test_given_records_are_validated():
-    with pytest.raises(ValueError, match=r"actors\[0\].class"):
+    # Each error names the file and line, then the actor's field.
+    with pytest.raises(ValueError, match=r"^f\.jsonl:1: actors\[0\]\.class: 'truck' is not"):
         actors_from_records([{"class": "truck", "x": 0, "y": 0}], TINY, "f.jsonl:1")
-    with pytest.raises(ValueError, match="outside"):
-        actors_from_records([{"class": "pedestrian", "x": 100.0, "y": 0, "vx": 0, "vy": 0}], TINY,
-                            "f.jsonl:1")
-    with pytest.raises(ValueError, match=r"width/length"):
+    ok = {"class": "pedestrian", "x": 0, "y": 0, "vx": 0, "vy": 0}
+    with pytest.raises(ValueError, match=r"^f\.jsonl:1: actors\[1\]\.x/y: \(40, 0\) m lies "
+                       r"outside the 80 m region"):  # the region is [-40, 40) m
+        actors_from_records([ok, {**ok, "x": 40.0}], TINY, "f.jsonl:1")
+    with pytest.raises(ValueError, match=r"^f\.jsonl:1: actors\[0\]\.width/length: box sizes"):
         actors_from_records([{"class": "vehicle", "x": 1, "y": 1, "width": 0, "length": 4,
                               "heading": 0, "vx": 0, "vy": 0}], TINY, "f.jsonl:1")
-    with pytest.raises(ValueError, match="NaN"):
+    with pytest.raises(ValueError, match=r"^f\.jsonl:1: actors\[0\]\.x: NaN or inf"):
         actors_from_records([{"class": "vehicle", "x": float("nan"), "y": 1, "width": 2,
                               "length": 4, "heading": 0, "vx": 0, "vy": 0}], TINY, "f.jsonl:1")
-    with pytest.raises(ValueError, match="more than max_actors"):
-        actors_from_records([{"class": "pedestrian", "x": 0, "y": 0, "vx": 0, "vy": 0}] * 50,
-                            TINY, "f.jsonl:1")
+    with pytest.raises(ValueError, match=r"^f\.jsonl:1: actors: 50 actors, more than max_actors"):
+        actors_from_records([ok] * 50, TINY, "f.jsonl:1")

@@ -63,16 +63,16 @@ def test_validate_names_the_field():
     jax.tree.map(np.asarray, ok).validate(CFG)
     bad = _actors([[1.0, 2.0]])
     bad.size[0] = (0.0, 4.0)
-    with pytest.raises(ValueError, match="size"):
-        Scene(actors=bad, ego=make_ego(CFG.ego_size_m)).validate(CFG)
+    with pytest.raises(ValueError, match=r"^s\.actors\.size: box width and length"):
+        Scene(actors=bad, ego=make_ego(CFG.ego_size_m)).validate(CFG, "s")
     bad = _actors([[1.0, np.nan]])
-    with pytest.raises(ValueError, match="position"):
-        Scene(actors=bad, ego=make_ego(CFG.ego_size_m)).validate(CFG)
+    with pytest.raises(ValueError, match=r"^s\.actors\.position: NaN or inf"):
+        Scene(actors=bad, ego=make_ego(CFG.ego_size_m)).validate(CFG, "s")
     far = _actors([[500.0, 0.0]])
-    with pytest.raises(ValueError, match="outside"):
-        Scene(actors=far, ego=make_ego(CFG.ego_size_m)).validate(CFG)
+    with pytest.raises(ValueError, match=r"^s\.actors\.position: actor outside"):
+        Scene(actors=far, ego=make_ego(CFG.ego_size_m)).validate(CFG, "s")
     unordered = _actors([[10.0, -10.0], [-10.0, 10.0]])
-    with pytest.raises(ValueError, match="canonical"):
+    with pytest.raises(ValueError, match=r"^scene\.actors: not in canonical"):  # the default
         Scene(actors=unordered, ego=make_ego(CFG.ego_size_m)).validate(CFG)
     ped = _actors([[1.0, 2.0]], cls=[PEDESTRIAN])
     ped.size[0] = 0.0  # pedestrians have no box

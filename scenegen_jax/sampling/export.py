@@ -27,6 +27,7 @@ from scenegen_jax.scene import (
     Actors,
     Scene,
     canonical_order,
+    in_region,
     make_ego,
     wrap_angle,
 )
@@ -105,6 +106,9 @@ def actors_from_records(
             values[key] = _number(value, f"{field}.{key}")
         if not ped and (values["width"] <= 0 or values["length"] <= 0):
             raise ValueError(f"{field}.width/length: box sizes must be positive")
+        if not in_region(np.array([values["x"], values["y"]]), cfg):
+            raise ValueError(f"{field}.x/y: ({values['x']:g}, {values['y']:g}) m lies outside "
+                             f"the {cfg.region_m:g} m region around the ego")
         cls[i] = c
         position[i] = (values["x"], values["y"])
         size[i] = (values["width"], values["length"])
