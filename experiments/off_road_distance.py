@@ -105,8 +105,8 @@ def scene_distances(cache, map_index: int, actors) -> list[float | None]:
 
 def road_distances(cache, scenes) -> list[list[float | None]]:
     """`scene_distances` of each scene of `scenes`, its actors in canonical order
-    (`canonical_positions`)."""
-    return [scene_distances(cache, map_index, canonical_positions(cache, positions))
+    (`in_canonical_order`)."""
+    return [scene_distances(cache, map_index, in_canonical_order(cache, positions))
             for map_index, positions in scenes]
 
 
@@ -115,7 +115,7 @@ def counted(distances: list[float | None]) -> np.ndarray:
     return np.array([x for x in distances if x is not None])
 
 
-def canonical_positions(cache, actors: list) -> list:
+def in_canonical_order(cache, actors: list) -> list:
     """`actors` (x, y, speed) sorted by ascending bin of the cache's model grid
     (`scene.bin_index`: the canonical order in which the model samples them)."""
     cfg = Config(grid_size=int(cache.meta["grid_size"]), m_per_px=float(cache.meta["m_per_px"]))
