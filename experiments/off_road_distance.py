@@ -106,8 +106,8 @@ def scene_distances(cache, map_index: int, actors) -> list[float | None]:
 def road_distances(cache, scenes) -> list[list[float | None]]:
     """`scene_distances` of each scene of `scenes`, its actors in canonical order
     (`in_canonical_order`)."""
-    return [scene_distances(cache, map_index, in_canonical_order(cache, positions))
-            for map_index, positions in scenes]
+    return [scene_distances(cache, map_index, in_canonical_order(cache, actors))
+            for map_index, actors in scenes]
 
 
 def counted(distances: list[float | None]) -> np.ndarray:
