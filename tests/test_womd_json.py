@@ -141,6 +141,11 @@ def test_bad_input_names_file_and_field():
     data["objects"][0]["heading"] = data["objects"][0]["heading"][:5]
     with pytest.raises(ValueError, match=r"x\.json: objects\[0\]\.heading"):
         W.frames_from_scenario(data, "x.json", 10)
+    # A damaged metadata field is refused, not read as "no SDC marker" (another ego).
+    data = _scene(False, sdc=2)
+    data["metadata"] = "x"
+    with pytest.raises(ValueError, match=r"^x\.json: metadata: expected an object, got str"):
+        W.frames_from_scenario(data, "x.json", 10)
 
 
 def test_surface_widths_from_lines_and_edges():

@@ -196,6 +196,8 @@ def estimate_sdc(tracks: Tracks) -> int:
 def find_sdc(data: Mapping, tracks: Tracks, objects: list, source: str) -> int:
     """Index into `tracks` of the ego: the file's SDC marker, else `estimate_sdc`."""
     meta = data.get("metadata")
+    if meta is not None and not isinstance(meta, Mapping):
+        raise _err(source, "metadata", f"expected an object, got {type(meta).__name__}")
     if isinstance(meta, Mapping) and "sdc_track_index" in meta:
         index = meta["sdc_track_index"]
         if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < len(objects):
