@@ -115,6 +115,64 @@ def test_cache_summary_and_bad_cache(tiny_train_cache, tmp_path):
     assert json.loads(json.dumps(meta["summary"]))["actors"]["vehicle"] > 0
 
 
+def _damaged_copy(src: str, dst, actors=None, maps=None) -> str:
+    """A copy of cache `src` in `dst` whose actor arrays (`actors`: field -> function of the
+    array) or map canvases (`maps`: a function of the array) are rewritten; the rest linked."""
+    dst.mkdir()
+    os.symlink(os.path.join(src, "meta.json"), dst / "meta.json")
+    with np.load(os.path.join(src, "actors.npz")) as z:
+        arrays = {k: z[k] for k in z.files}
+    for field, damage in (actors or {}).items():
+        arrays[field] = damage(arrays[field])
+    np.savez(dst / "actors.npz", **arrays)
+    if maps is None:
+        os.symlink(os.path.join(src, "maps.npy"), dst / "maps.npy")
+    else:
+        np.save(dst / "maps.npy", maps(np.load(os.path.join(src, "maps.npy"))))
+    return str(dst)
+
+
+@pytest.mark.parametrize("field, damage, says", [
+    ("cls", lambda v: v.astype(np.float32) + 0.5, r"field cls: float32 \(60, 98\), expected "
+     r"integer \(60, 98\)"),
+    ("velocity", lambda v: v.astype(str), r"field velocity: <U\d+ \(60, 98, 2\)"),
+    ("position", lambda v: v[..., 0], r"field position: float32 \(60, 98\), expected float "
+     r"\(60, 98, 2\)"),
+    ("valid", lambda v: v[..., None], r"field valid: bool \(60, 98, 1\)"),
+    ("ego_size", lambda v: -v, "field ego_size: sizes must be finite and positive"),
+    ("ego_velocity", lambda v: np.full_like(v, np.inf), "field ego_velocity: NaN or inf"),
+    ("position", lambda v: v + 1e3, "field position: scene 0 slot 0 lies beyond the canvas"),
+])
+def test_damaged_actor_arrays_name_the_field(tiny_train_cache, tmp_path, field, damage, says):
+    """Arrays of another dtype or shape, egos of impossible sizes and actors beyond the canvas
+    (a cache edited or written by something else) are refused naming the file and field."""
+    assert len(tiny_train_cache) == 60 and tiny_train_cache.meta["slots"] == 98
+    path = _damaged_copy(tiny_train_cache.path, tmp_path / "c", actors={field: damage})
+    with pytest.raises(ValueError, match=rf"^{tmp_path / 'c' / 'actors.npz'}: {says}"):
+        load_cache(path)
+
+
+def test_damaged_maps_are_named(tiny_train_cache, tmp_path):
+    from scenegen_jax.eval.nll import score_cache
+    from scenegen_jax.model.network import init_params
+
+    path = _damaged_copy(tiny_train_cache.path, tmp_path / "shape", maps=lambda m: m[..., :3])
+    with pytest.raises(ValueError, match=rf"^{tmp_path / 'shape' / 'maps.npy'}: float16 "):
+        load_cache(path)
+
+    def nan_scene_1(m):
+        m[1, 10, 10, 0] = np.nan
+        return m
+
+    # NaN in a map reads (the canvases are memory-mapped, not scanned), but scoring stops at
+    # the scene before any work on it.
+    cache = load_cache(_damaged_copy(tiny_train_cache.path, tmp_path / "nan", maps=nan_scene_1))
+    params = init_params(CFG, jax.random.key(0))
+    with pytest.raises(ValueError, match=r"nan: .*: field canvas: NaN or inf"):
+        score_cache(params, cache, CFG, batch_size=2, progress=False, workers=1,
+                    scenes=range(2))
+
+
 @pytest.mark.parametrize("name, keep", [("actors.npz", 0.5), ("maps.npy", 0.5),
                                          ("maps.npy", 0.0), ("meta.json", 0.5)])
 def test_truncated_cache_files_are_named(tiny_train_cache, tmp_path, name, keep):

@@ -37,6 +37,13 @@ from scenegen_jax.scene import CLASS_NAMES, Actors, in_region, make_ego
 log = logging.getLogger(__name__)
 CACHE_VERSION = 3  # 2: the nearest lane channels; 3: the data set channels
 ACTOR_FIELDS = ("cls", "position", "size", "heading", "velocity", "valid")
+# Each array of actors.npz: numpy dtype kinds it may have, and its shape after the scene axis
+# ("A": the actor slots).
+ARRAY_LAYOUT = {
+    "cls": ("iu", ("A",)), "valid": ("b", ("A",)), "position": ("f", ("A", 2)),
+    "size": ("f", ("A", 2)), "heading": ("f", ("A",)), "velocity": ("f", ("A", 2)),
+    "ego_velocity": ("f", (2,)), "ego_size": ("f", (2,)),
+}
 
 
 def cache_slots(cfg: Config) -> int:
@@ -315,6 +322,10 @@ class Cache:
     def scene_ids(self) -> list[str]:
         return self.meta["scene_ids"]
 
+    def scene_name(self, index: int) -> str:
+        """The scene's id after the cache's path, for errors."""
+        return f"{self.path}: {self.scene_ids[index]}"
+
     def check_config(self, cfg: Config) -> None:
         """Raises if `cfg`'s grid does not match the grid the cache was prepared for."""
         grid = (self.meta["grid_size"], self.meta["m_per_px"])
@@ -371,12 +382,12 @@ def load_cache(path: str) -> Cache:
         raise ValueError(f"{npz_path}: missing field(s) {missing}")
     n = len(meta["scene_ids"])
     for k, v in data.items():
-        if v.shape[0] != n:
-            raise ValueError(f"{npz_path}: field {k}: {v.shape[0]} scenes, meta.json has {n}")
-    if maps.shape[0] != n:
-        raise ValueError(f"{path}/maps.npy: {maps.shape[0]} scenes, meta.json has {n}")
+        if v.ndim == 0 or v.shape[0] != n:
+            raise ValueError(f"{npz_path}: field {k}: {v.shape[:1]} scenes, meta.json has {n}")
+    _check_layout(meta, meta_path, maps, maps_path, data, npz_path)
     actors = Actors(**{k: data[k] for k in ACTOR_FIELDS})
     actors.validate(f"{npz_path}: actors")
+    _check_places_and_egos(meta, data, npz_path)
     return Cache(
         path=path,
         meta=meta,
@@ -386,6 +397,48 @@ def load_cache(path: str) -> Cache:
         ego_size=data["ego_size"],
         city_from_ego=data.get("city_from_ego", np.tile(np.eye(3), (n, 1, 1))),
     )
+
+
+def _check_layout(meta, meta_path, maps, maps_path, data, npz_path) -> None:
+    """Raises ValueError naming the file and field where an array's dtype or shape is not the
+    cache layout's (module docstring; `ARRAY_LAYOUT`)."""
+    slots, canvas = meta.get("slots"), meta.get("canvas_size")
+    for field in ("slots", "canvas_size", "grid_size"):
+        value = meta.get(field)
+        if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+            raise ValueError(f"{meta_path}: field {field}: expected a positive integer, got "
+                             f"{value!r}")
+    m = meta.get("m_per_px")
+    if isinstance(m, bool) or not isinstance(m, int | float) or not 0 < m < math.inf:
+        raise ValueError(f"{meta_path}: field m_per_px: expected a positive number, got {m!r}")
+    n = len(meta["scene_ids"])
+    for k, (kinds, tail) in ARRAY_LAYOUT.items():
+        want = (n, *(slots if d == "A" else d for d in tail))
+        if data[k].dtype.kind not in kinds or data[k].shape != want:
+            raise ValueError(f"{npz_path}: field {k}: {data[k].dtype} {data[k].shape}, expected "
+                             f"{_KIND_NAMES[kinds]} {want}")
+    want = (n, canvas, canvas, len(ALL_MAP_CHANNELS))
+    if maps.dtype.kind != "f" or maps.shape != want:
+        raise ValueError(f"{maps_path}: {maps.dtype} {maps.shape}, expected float {want}")
+
+
+_KIND_NAMES = {"iu": "integer", "b": "bool", "f": "float"}
+
+
+def _check_places_and_egos(meta, data, npz_path) -> None:
+    """Raises ValueError naming the field where a valid actor stands beyond the canvas's
+    inscribed circle (`canvas_radius`: prepare keeps none there), or an ego's size is not
+    finite and positive or its velocity not finite."""
+    radius = float(meta["grid_size"]) * float(meta["m_per_px"]) / math.sqrt(2.0)
+    far = data["valid"] & (np.hypot(*np.moveaxis(data["position"], -1, 0)) > radius + 1e-3)
+    if far.any():
+        scene, slot = (int(i[0]) for i in np.nonzero(far))
+        raise ValueError(f"{npz_path}: field position: scene {scene} slot {slot} lies beyond the "
+                         f"canvas ({radius:.2f} m from the ego); re-run prepare")
+    if not (np.all(np.isfinite(data["ego_size"])) and np.all(data["ego_size"] > 0)):
+        raise ValueError(f"{npz_path}: field ego_size: sizes must be finite and positive")
+    if not np.all(np.isfinite(data["ego_velocity"])):
+        raise ValueError(f"{npz_path}: field ego_velocity: NaN or inf")
 
 
 # Fields every shard of a cache must share (the rest, scene ids and summaries, add up).

@@ -21,7 +21,7 @@ from scenegen_jax.backend import (
 from scenegen_jax.config import Config
 from scenegen_jax.data.cache import Cache
 from scenegen_jax.distributions import TERMS
-from scenegen_jax.likelihood.batch import Batch, crop_batch, gather_batch, to_device
+from scenegen_jax.likelihood.batch import Batch, check_batch, crop_batch, gather_batch, to_device
 from scenegen_jax.likelihood.unroll import unroll_terms
 from scenegen_jax.scene import CLASS_NAMES, STOP
 
@@ -75,6 +75,7 @@ def score_cache(params, cache: Cache, cfg: Config, batch_size: int = 8, progress
         real = idx < n
         idx = np.where(real, idx, scenes.start)  # pad the last call, dropped below
         host = gather_batch(cache, idx, cfg)
+        check_batch(host, [cache.scene_name(int(i)) for i in idx])
         out = jax.device_get(fn(params, to_device(host, NamedSharding(mesh, P("data")))))
         return {k: v[real] for k, v in out.items()}
 

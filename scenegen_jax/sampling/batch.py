@@ -356,6 +356,9 @@ def sample_on_cache(
 
     def map_of(i: int) -> np.ndarray:
         if i not in maps:
+            if not np.isfinite(cache.maps[i]).all():
+                raise ValueError(f"scene {cache.scene_name(i)}: field canvas: NaN or inf in "
+                                 "the map")
             maps[i] = np.asarray(crop(jnp.asarray(cache.maps[i]), 0.0, cfg))
         return maps[i]
 
