@@ -24,6 +24,7 @@ import hashlib
 import json
 import logging
 import os
+import pathlib
 import shutil
 import time
 
@@ -213,6 +214,12 @@ class Checkpointer:
                 )
             steps = [step]
         for step in steps:
+            mismatch = self._shape_mismatch(step, abstract)
+            if mismatch:  # not damage: every checkpoint of the run has these shapes
+                raise ValueError(
+                    f"{self.directory}/{step}: {mismatch}; the checkpoints were saved by a model "
+                    "of another config (was the workdir's config.json changed?)"
+                )
             try:
                 want = self._checksums(step)
                 if want is not None:
@@ -234,6 +241,22 @@ class Checkpointer:
                 continue
             log.info("%s: restored the checkpoint of step %d", self.directory, step)
             return type(template)(**restored) if whole else dict(restored, step=step)
+        return None
+
+    def _shape_mismatch(self, step: int, abstract) -> str | None:
+        """The first array of `abstract` whose saved shape at `step` differs, as text; None
+        when all agree, or when orbax's metadata cannot be read (the restore then decides)."""
+        try:
+            path = pathlib.Path(self.directory, str(step), "default")
+            tree = ocp.StandardCheckpointHandler().metadata(path).tree
+            saved = {jax.tree_util.keystr(k): tuple(m.shape)
+                     for k, m in jax.tree_util.tree_flatten_with_path(tree)[0]}
+        except Exception:  # a damaged or foreign step: its restore reports it
+            return None
+        for k, x in jax.tree_util.tree_flatten_with_path(abstract)[0]:
+            key = jax.tree_util.keystr(k)
+            if key in saved and saved[key] != tuple(x.shape):
+                return f"{key}: saved with shape {saved[key]}, the config's model has {x.shape}"
         return None
 
     def close(self) -> None:

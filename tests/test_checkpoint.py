@@ -92,6 +92,32 @@ def test_damaged_newest_checkpoint_is_set_aside_and_the_rerun_finishes(
     assert logged == list(range(2, STEPS + 1, 2))
 
 
+def test_a_config_of_other_shapes_is_named_not_set_aside(tiny_train_cache, eight_steps,
+                                                        tmp_path):
+    """A workdir whose config.json no longer gives the checkpoints' shapes (edited by hand):
+    loading names the checkpoint and the first array whose shape differs, and a training run
+    refuses it too instead of setting every checkpoint aside as damaged and starting again."""
+    from scenegen_jax.workdir import load_params
+
+    workdir = _copy(eight_steps, tmp_path)
+    path = os.path.join(workdir, "config.json")
+    with open(path) as f:
+        saved = json.load(f)
+    wider = {**saved, "hidden": 2 * saved["hidden"], "gn_groups": 2 * saved["gn_groups"]}
+    with open(path, "w") as f:
+        json.dump(wider, f)
+    h = saved["hidden"]
+    want = (rf"{os.path.join(workdir, 'checkpoints')}/8: \['params'\]\['backbone0_b'\]: saved "
+            rf"with shape \({h},\), the config's model has \({2 * h},\)")
+    with pytest.raises(ValueError, match=want):
+        load_params(workdir)
+    with pytest.raises(ValueError, match="another config"):
+        train(CFG.replace(hidden=wider["hidden"], gn_groups=wider["gn_groups"]),
+              tiny_train_cache.path, workdir, 12, save_every=EVERY, keep=2, progress=False)
+    assert _steps(workdir) == [4, 8]
+    assert not os.path.exists(os.path.join(workdir, "checkpoints.damaged"))
+
+
 def test_tree_checksums_hash_dtype_shape_and_values():
     import hashlib
 
