@@ -44,6 +44,7 @@ ARRAY_LAYOUT = {
     "size": ("f", ("A", 2)), "heading": ("f", ("A",)), "velocity": ("f", ("A", 2)),
     "ego_velocity": ("f", (2,)), "ego_size": ("f", (2,)),
 }
+_KIND_NAMES = {"iu": "integer", "b": "bool", "f": "float"}
 
 
 def cache_slots(cfg: Config) -> int:
@@ -420,9 +421,6 @@ def _check_layout(meta, meta_path, maps, maps_path, data, npz_path) -> None:
     want = (n, canvas, canvas, len(ALL_MAP_CHANNELS))
     if maps.dtype.kind != "f" or maps.shape != want:
         raise ValueError(f"{maps_path}: {maps.dtype} {maps.shape}, expected float {want}")
-
-
-_KIND_NAMES = {"iu": "integer", "b": "bool", "f": "float"}
 
 
 def _check_places_and_egos(meta, data, npz_path) -> None:
