@@ -843,5 +843,7 @@ def test_given_records_are_validated():
     with pytest.raises(ValueError, match=r"^f\.jsonl:1: actors\[0\]\.x: NaN or inf"):
         actors_from_records([{"class": "vehicle", "x": float("nan"), "y": 1, "width": 2,
                               "length": 4, "heading": 0, "vx": 0, "vy": 0}], TINY, "f.jsonl:1")
+    with pytest.raises(ValueError, match=r"^f\.jsonl:1: actors\[0\]\.vx: out of range$"):
+        actors_from_records([{**ok, "vx": 10**39}], TINY, "f.jsonl:1")  # float32 tops 3.4e38
     with pytest.raises(ValueError, match=r"^f\.jsonl:1: actors: 50 actors, more than max_actors"):
         actors_from_records([ok] * 50, TINY, "f.jsonl:1")

@@ -125,6 +125,9 @@ def actors_from_records(
     return actors
 
 
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
 def _number(value: Any, field: str) -> float:
     """A finite JSON number as a float; ValueError naming `field` for anything else."""
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
@@ -135,6 +138,8 @@ def _number(value: Any, field: str) -> float:
         raise ValueError(f"{field}: out of range") from e
     if not math.isfinite(value):
         raise ValueError(f"{field}: NaN or inf")
+    if abs(value) > FLOAT32_MAX:  # the actor arrays are float32: it would become inf there
+        raise ValueError(f"{field}: out of range")
     return value
 
 
