@@ -427,7 +427,7 @@ def _check_places_and_egos(meta, data, npz_path) -> None:
     """Raises ValueError naming the field where a valid actor stands beyond the canvas's
     inscribed circle (`canvas_radius`: prepare keeps none there), or an ego's size is not
     finite and positive or its velocity not finite."""
-    radius = float(meta["grid_size"]) * float(meta["m_per_px"]) / math.sqrt(2.0)
+    radius = canvas_radius(Config(grid_size=meta["grid_size"], m_per_px=meta["m_per_px"]))
     far = data["valid"] & (np.hypot(*np.moveaxis(data["position"], -1, 0)) > radius + 1e-3)
     if far.any():
         scene, slot = (int(i[0]) for i in np.nonzero(far))
