@@ -9,7 +9,7 @@ run shows any progress. One measurement per process; prints one `RESULT {json}` 
     bench/.venv-torch/bin/python bench/first_result.py ref train --grid 128   # the reference
 
 Ours runs what the command line runs for the first batch of a preset as it ships (`tiny`,
-`cpu`; `paper` at `--grid`, T 25, B 1, the reference's shape): `first_train_step` (the
+`cpu`; `paper` at `--grid`, T 25, B 1, the reference's shape): `train_step_for_run` (the
 split step on XLA:CPU; the one-program step starts compiling once the first step is done,
 as in a run of 1,000 steps)
 and one step on a fresh state of the preset, on a batch of its size; for scoring and sampling, the
@@ -85,7 +85,7 @@ def ours(kind: str, config: str, grid: int, model: str | None) -> dict:
     from scenegen_jax.backend import concurrent_map, default_workers, scoring_compiler_options
     from scenegen_jax.eval.nll import score_batch
     from scenegen_jax.pretrained import load_pretrained
-    from scenegen_jax.train.step import first_train_step, init_state
+    from scenegen_jax.train.step import init_state, train_step_for_run
 
     t_import = process_age_s()
     if kind == "train":
@@ -101,7 +101,7 @@ def ours(kind: str, config: str, grid: int, model: str | None) -> dict:
         batch = jax.device_put(synthetic_batch(cfg, cfg.batch_size, cfg.max_actors))
         t = process_age_s()
         out["init_s"] = t - t_import
-        step = first_train_step(cfg, state, batch, None, steps=1000)
+        step = train_step_for_run(cfg, state, batch, None, steps=1000)
         out["compile_s"] = process_age_s() - t
         jax.block_until_ready(step(state, batch))
         out["step_s"] = process_age_s() - t - out["compile_s"]

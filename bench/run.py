@@ -278,7 +278,7 @@ def sample_case(cfg, params, args) -> dict:
     from synthetic import synthetic_batch
 
     from scenegen_jax.likelihood.batch import crop_batch
-    from scenegen_jax.sampling import FULL, SamplerOptions, sample_scenes
+    from scenegen_jax.sampling import SamplerOptions, StopReason, sample_scenes
     from scenegen_jax.scene import STOP
 
     b = args.batch
@@ -311,7 +311,7 @@ def sample_case(cfg, params, args) -> dict:
     r = timed(fn, args.runs)
     s = jax.device_get(last["s"])
     count = s.actors.valid.sum(-1).reshape(-1)
-    iterations = count + (s.stop_reason.reshape(-1) != FULL)
+    iterations = count + (s.stop_reason.reshape(-1) != StopReason.FULL)
     r.update(
         proposals=cfg.proposals,
         max_actors=cfg.max_actors,

@@ -175,19 +175,13 @@ def canonical_order(actors: Actors, cfg: Config) -> Actors:
     n_bins = cfg.grid_size * cfg.grid_size
     key = jnp.where(actors.valid, bin_index(actors.position, cfg), n_bins)
     order = jnp.argsort(key, stable=True)
-    return jax_tree_take(actors, order)
+    return tree_take(actors, order)
 
 
-def jax_tree_take(actors: Actors, index) -> Actors:
-    """Gathers actor slots `index` along the leading axis of every field."""
-    return Actors(
-        cls=actors.cls[index],
-        position=actors.position[index],
-        size=actors.size[index],
-        heading=actors.heading[index],
-        velocity=actors.velocity[index],
-        valid=actors.valid[index],
-    )
+def tree_take(tree, index):
+    """Gathers `index` along the leading axis of every leaf of `tree` (e.g. actor slots of
+    `Actors`; jax or numpy leaves)."""
+    return jax.tree.map(lambda x: x[index], tree)
 
 
 def wrap_angle(theta):

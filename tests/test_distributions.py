@@ -142,14 +142,15 @@ def circular_cdf(logpdf):
 
 # ----------------------------------------------------------------------------- layouts
 def test_layout_sizes_and_validation():
-    assert (D.BOX_PARAMS(10), D.HEADING_PARAMS(10), D.VELOCITY_PARAMS(10)) == (60, 40, 55)
+    sizes = (D.box_params_size, D.heading_params_size, D.velocity_params_size)
+    assert tuple(f(10) for f in sizes) == (60, 40, 55)
     assert D.num_mixtures(jnp.zeros(18)) == 3
     with pytest.raises(ValueError):
         D.split_box(jnp.zeros(17))
     with pytest.raises(ValueError):
         D.split_velocity(jnp.zeros(6))  # a lone stationary component has no moving one
     # K = 1 (the paper's Table 2): velocity keeps the point mass and one moving component.
-    assert (D.BOX_PARAMS(1), D.HEADING_PARAMS(1), D.VELOCITY_PARAMS(1)) == (6, 4, 7)
+    assert tuple(f(1) for f in sizes) == (6, 4, 7)
     one = D.HeadOutputs(jnp.zeros(4), jnp.zeros(N_BINS), jnp.zeros(6), jnp.zeros(4), jnp.zeros(7))
     assert one.num_mixtures == 1
     head = D.HeadOutputs(

@@ -10,10 +10,22 @@ import os
 from conftest import REPO
 
 PACKAGE = os.path.join(REPO, "scenegen_jax")
-# Parts that must never import the training code: a scene's likelihood, sampling and
-# evaluation only need parameters.
-NOT_TRAIN = ("likelihood", "sampling", "eval", "pretrained", "model", "distributions", "raster",
-             "data")
+# The package's layers, bottom up (README.md, "Library layout"): a part imports only parts of
+# lower layers. So the training code (`train`) is imported by the CLI alone: a scene's
+# likelihood, sampling and evaluation only need parameters.
+LAYERS = (
+    ("config", "allocator", "backend"),
+    ("scene", "vector_map"),
+    ("frame", "geometry"),
+    ("checkpoint", "raster"),
+    ("data", "distributions"),
+    ("model",),
+    ("workdir", "likelihood"),
+    ("sampling",),
+    ("pretrained",),
+    ("train", "eval", "viz"),
+    ("cli",),
+)
 
 
 def _part(module: str) -> str:
@@ -89,7 +101,28 @@ def test_no_import_cycle_between_parts():
     assert find_cycle(graph) is None, find_cycle(graph)
 
 
-def test_only_training_and_the_cli_import_train():
+def layer_breaks(graph: dict[str, set[str]], layers) -> list[str]:
+    """'a -> b' for each import of a part `b` from a part `a` of the same or a lower layer."""
+    level = {part: i for i, parts in enumerate(layers) for part in parts}
+    return sorted(f"{a} -> {b}" for a, deps in graph.items() for b in deps
+                  if level[b] >= level[a])
+
+
+def test_layer_breaks_on_hand_made_graphs():
+    layers = (("a",), ("b", "c"))
+    assert layer_breaks({"b": {"a"}, "c": {"a"}}, layers) == []
+    assert layer_breaks({"a": {"b"}, "b": {"c"}}, layers) == ["a -> b", "b -> c"]
+
+
+def test_every_part_has_a_layer():
+    names = [name.removesuffix(".py") for name in os.listdir(PACKAGE)]
+    parts = {n for n in names if n.isidentifier() and not n.startswith("__") and _is_part(n)}
+    placed = {p for layer in LAYERS for p in layer}
+    assert parts == placed, f"not in LAYERS: {parts - placed}; gone: {placed - parts}"
+
+
+def test_imports_flow_down_the_layers():
     graph = part_imports()
-    offenders = sorted(p for p in NOT_TRAIN if "train" in graph.get(p, ()))
-    assert not offenders, f"these parts import scenegen_jax.train: {offenders}"
+    graph.pop("scenegen_jax", None)  # the package's own __init__ (imports no part)
+    assert "cli" in graph and "train" in graph["cli"]  # the walk sees real imports
+    assert not layer_breaks(graph, LAYERS), layer_breaks(graph, LAYERS)

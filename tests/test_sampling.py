@@ -24,27 +24,24 @@ from shapely.geometry import Polygon
 
 from scenegen_jax.config import get_config
 from scenegen_jax.distributions import (
-    BOX_PARAMS,
-    HEADING_PARAMS,
-    VELOCITY_PARAMS,
+    box_params_size,
     heading_log_prob,
+    heading_params_size,
     sample_box,
     sample_heading,
     sample_velocity,
+    velocity_params_size,
     velocity_proposal_score,
 )
 from scenegen_jax.geometry import boxes_overlap
 from scenegen_jax.sampling import (
-    COLLISION,
-    FULL,
     HEATMAP_STEPS,
     MAX_SIZE_M,
     MAX_SPEED_MPS,
     MIN_SIZE_M,
-    NO_BIN,
-    STOP_TOKEN,
     NetworkModel,
     SamplerOptions,
+    StopReason,
     actor_records,
     actors_from_records,
     batch_inputs,
@@ -136,7 +133,7 @@ def test_sample_attributes_keeps_the_most_likely_of_m_proposals():
     r, m = 3, 7
     cls = jnp.array([VEHICLE, BICYCLIST, PEDESTRIAN], jnp.int32)
     raws = [jnp.asarray(rng.normal(size=(r, n)), jnp.float32)
-            for n in (BOX_PARAMS(K), HEADING_PARAMS(K), VELOCITY_PARAMS(K))]
+            for n in (box_params_size(K), heading_params_size(K), velocity_params_size(K))]
     keys = jax.random.split(jax.random.key(0), r)
     fn = jax.jit(sample_attributes, static_argnames=("cfg", "proposals"))
     size, head, vel = map(np.asarray, fn(keys, *raws, cls, cfg=TINY, proposals=m))
@@ -187,19 +184,19 @@ def test_best_of_m_keeps_standing_share_and_mixture_modes():
     win. The box, one draw, has the median of its log-normal."""
     k = TINY.num_mixtures
     n, m = 4000, 10
-    box = np.full(BOX_PARAMS(k), -30.0, np.float32)  # one component (others' logits -30)
+    box = np.full(box_params_size(k), -30.0, np.float32)  # one component (others' logits -30)
     box[0] = 0.0
     box[k : k + 2] = np.log([2.0, 4.5])  # mu of (log w, log l)
     box[3 * k : 3 * k + 2] = np.log(0.3**2)  # log var
     box[5 * k] = 0.0  # rho
-    vel = np.zeros(VELOCITY_PARAMS(k), np.float32)
+    vel = np.zeros(velocity_params_size(k), np.float32)
     vel[:k] = [0.0, 0.0] + [-30.0] * (k - 2)  # pi_0 = pi_1 = 1/2
     vel[k] = np.log(10.0)  # mu of log speed, component 1
     vel[2 * k - 1] = np.log(0.5)  # log sigma
     vel[3 * k - 2 : 3 * k] = [1.0, 0.0]  # direction biternion
     vel[5 * k - 4] = 2.0  # log kappa
     raws = [jnp.broadcast_to(jnp.asarray(x), (n, x.size)) for x in
-            (box, np.zeros(HEADING_PARAMS(k), np.float32), vel)]
+            (box, np.zeros(heading_params_size(k), np.float32), vel)]
     cls = jnp.full((n,), VEHICLE, jnp.int32)
     fn = jax.jit(sample_attributes, static_argnames=("cfg", "proposals"))
     size, _, v = map(np.asarray, fn(jax.random.split(jax.random.key(3), n), *raws, cls,
@@ -366,7 +363,7 @@ def test_fake_model_insertion_order_classes_and_stop():
     np.testing.assert_array_equal(a.cls[:, :3],
                                   np.tile([VEHICLE, PEDESTRIAN, BICYCLIST], (FAKE_NUM, 1)))
     np.testing.assert_array_equal(bins_of(a)[:, :3], np.tile([70, 300, 301], (FAKE_NUM, 1)))
-    np.testing.assert_array_equal(out.stop_reason, STOP_TOKEN)
+    np.testing.assert_array_equal(out.stop_reason, StopReason.TOKEN)
     np.testing.assert_array_equal(out.rejected, 0)
     # Nothing is written after the stop; attributes as the fake heads dictate.
     assert np.all(a.position[:, 3:] == 0) and np.all(a.size[:, 3:] == 0)
@@ -396,7 +393,7 @@ def test_fake_model_ordering_mask_excludes_earlier_bins_and_no_bin_stops():
     row[900:] = -np.inf
     out = run_fake(fake_params([VEHICLE, VEHICLE], [peaked((1000, 30.0)), row]))
     np.testing.assert_array_equal(out.actors.valid.sum(-1), 1)
-    np.testing.assert_array_equal(out.stop_reason, NO_BIN)
+    np.testing.assert_array_equal(out.stop_reason, StopReason.NO_BIN)
     assert np.all(np.isfinite(out.heatmaps))
 
 
@@ -445,7 +442,7 @@ def test_fake_model_collision_rejection():
     a = out.actors
     assert np.all(bins_of(a)[:, 0] == 100) and np.all(bins_of(a)[:, 1] != 100)
     assert np.all(out.rejected >= 8)  # at least the first round of step 1
-    assert np.all(np.isin(out.stop_reason, [FULL, COLLISION]))
+    assert np.all(np.isin(out.stop_reason, [StopReason.FULL, StopReason.COLLISION]))
     ego = ego_of(FAKE_CFG)
     for s in range(FAKE_NUM):
         one = slot(a, s)
@@ -467,7 +464,7 @@ def test_fake_model_class_caps_and_given_actors():
     out = run_fake(params, caps=np.array([2, 0, 3]))
     np.testing.assert_array_equal(out.actors.cls[:, :5], np.tile([0, 0, 2, 2, 2], (FAKE_NUM, 1)))
     np.testing.assert_array_equal(out.actors.valid.sum(-1), 5)
-    np.testing.assert_array_equal(out.stop_reason, STOP_TOKEN)  # every class at its cap
+    np.testing.assert_array_equal(out.stop_reason, StopReason.TOKEN)  # every class at its cap
 
     # Given actors: inserted first, unchanged; they count towards the caps; sampling goes on
     # after the last given bin.
@@ -811,19 +808,18 @@ def test_given_overlaps_are_refused_unless_allowed():
         actors_from_records(ahead, TINY, "f", np.array([[2.0, 4.0], [2.0, 6.0]]))
 
 
-def test_read_given_checks_each_line_against_the_egos_it_meets(tmp_path):
+def test_given_lines_are_checked_against_the_egos_they_meet():
     from scenegen_jax.cli import build_parser
-    from scenegen_jax.sampling.export import read_given
+    from scenegen_jax.sampling.export import given_from_lines
 
-    path = tmp_path / "given.jsonl"
     ahead = json.dumps({"actors": [_vehicle(6.0, 0.0)]})  # x in [4, 8] m
-    path.write_text(ahead + "\n\n" + ahead + "\n")
+    lines = [ahead, "", ahead]
     egos = np.array([[2.0, 4.0], [2.0, 10.0], [2.0, 4.0]])  # scenes 0, 1, 2: lines 1, 3, 1
-    with pytest.raises(ValueError, match=rf"^{re.escape(str(path))}:3: actors\[0\] .* overlaps "
+    with pytest.raises(ValueError, match=r"^given.jsonl:3: actors\[0\] .* overlaps "
                        r"the ego \(width 2 m, length 10 m"):
-        read_given(str(path), TINY, egos)
-    assert len(read_given(str(path), TINY, egos[[0, 2, 0]])) == 2
-    assert len(read_given(str(path), TINY, egos, allow_overlap=True)) == 2
+        given_from_lines(lines, "given.jsonl", TINY, egos)
+    assert len(given_from_lines(lines, "given.jsonl", TINY, egos[[0, 2, 0]])) == 2
+    assert len(given_from_lines(lines, "given.jsonl", TINY, egos, allow_overlap=True)) == 2
     args = ["sample", "--workdir", "w", "--data", "d", "--num", "1", "--out", "o"]
     assert build_parser().parse_args(args + ["--allow-overlap"]).allow_overlap
     assert not build_parser().parse_args(args).allow_overlap

@@ -1103,3 +1103,21 @@ print("OK", out[0][0], out[1][0])
             runs.setdefault(run, {})[name] = f[key]
     assert_same_adam_training(runs["init"], runs["one"], runs["eight"],
                               get_config("tiny").learning_rate, 1)
+
+
+def test_logged_metrics_are_means_over_the_logged_steps():
+    """`summarize` on hand-made sums of two steps: loss and gradient norm per batch, NLL per
+    scene, per actor of each class and per vehicle; None for a class with no actor."""
+    from scenegen_jax.train.loop import summarize
+
+    stats = {"batches": 2, "scenes": 8, "loss": 30.0, "grad_norm": 5.0, "nll_sum_stop": 4.0,
+             **{f"nll_{k}": 16.0 for k in ("class", "location", "box", "heading", "velocity")},
+             "count_vehicle": 10, "nll_sum_vehicle": 25.0, "count_pedestrian": 4,
+             "nll_sum_pedestrian": 2.0, "count_bicyclist": 0, "nll_sum_bicyclist": 0.0,
+             **{f"nll_{k}_sum_vehicle": 3.0 for k in ("location", "box", "heading", "velocity")}}
+    row = summarize(stats)
+    assert row["loss"] == 15.0 and row["grad_norm"] == 2.5
+    assert row["nll_location"] == 2.0 and row["nll_stop"] == 0.5
+    assert row["nll_per_vehicle"] == 2.5 and row["nll_per_pedestrian"] == 0.5
+    assert row["nll_per_bicyclist"] is None
+    assert row["heading_per_vehicle"] == pytest.approx(0.3)

@@ -109,6 +109,11 @@ def start_distributed(args) -> None:
         raise ValueError("--coordinator, --num-processes and --process-id need --distributed")
 
 
+def part_path(path: str, index: int, count: int) -> str:
+    """The file of process `index`'s part of `path` when `count` processes write it."""
+    return f"{path}.part-{index:05d}-of-{count:05d}"
+
+
 def merge_parts(path: str, arrays: dict):
     """With several processes: each writes its part of per-scene `arrays` (concatenated
     along axis 0 in process order) to PATH.part-I-of-N.npz; process 0 reads them all back,
@@ -122,7 +127,7 @@ def merge_parts(path: str, arrays: dict):
     count, index = jax.process_count(), jax.process_index()
     if count == 1:
         return arrays
-    part = lambda i: f"{path}.part-{i:05d}-of-{count:05d}.npz"  # noqa: E731
+    part = lambda i: part_path(path, i, count) + ".npz"  # noqa: E731
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     np.savez(part(index), **arrays)
     sync_processes(f"parts of {path} written")

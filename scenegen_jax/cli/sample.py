@@ -14,6 +14,7 @@ from scenegen_jax.cli.common import (
     add_temperature_arg,
     load_model,
     location_temperature,
+    part_path,
     start_distributed,
 )
 from scenegen_jax.config import Config
@@ -62,7 +63,7 @@ def write_sampled(out: str, scene, cache, cfg: Config, seed: int, heatmap_steps)
 
 def conditioning(args, cfg: Config, cache) -> tuple[list[int], list]:
     """The cache scenes to cycle through (`--index`, checked) and the `--given` actors."""
-    from scenegen_jax.sampling.export import read_given
+    from scenegen_jax.sampling.export import given_from_lines
 
     indices = list(args.index) if args.index else list(range(len(cache)))
     for i in indices:
@@ -71,7 +72,8 @@ def conditioning(args, cfg: Config, cache) -> tuple[list[int], list]:
     given = []
     if args.given:  # scene k is sampled beside the ego of cache scene indices[k mod len]
         scene_egos = cache.ego_size[[indices[k % len(indices)] for k in range(args.num)]]
-        given = read_given(args.given, cfg, scene_egos, args.allow_overlap)
+        with open(args.given) as f:
+            given = given_from_lines(f, args.given, cfg, scene_egos, args.allow_overlap)
     return indices, given
 
 
@@ -110,7 +112,7 @@ def cmd_sample(args) -> None:
                              batch_size=args.batch_size, options=options, scenes=share)
     scenarios, counts = [], dict.fromkeys(CLASS_NAMES, 0)
     jsonl_path = os.path.join(out, "scenes.jsonl")
-    part_of = lambda i: f"{jsonl_path}.part-{i:05d}-of-{parts:05d}"  # noqa: E731
+    part_of = lambda i: part_path(jsonl_path, i, parts)  # noqa: E731
     with (
         open(jsonl_path if parts == 1 else part_of(jax.process_index()), "w") as jsonl,
         tqdm(total=len(share), desc="sample", unit="scene", file=sys.stderr,

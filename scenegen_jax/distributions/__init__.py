@@ -38,9 +38,6 @@ from scenegen_jax.distributions.mixtures import (
     vonmises_log_prob,
 )
 from scenegen_jax.distributions.params import (
-    BOX_PARAMS,
-    HEADING_PARAMS,
-    VELOCITY_PARAMS,
     BoxParams,
     VelocityParams,
     VonMisesParams,
@@ -54,10 +51,7 @@ from scenegen_jax.distributions.params import (
 )
 
 __all__ = [
-    "BOX_PARAMS",
-    "HEADING_PARAMS",
     "TERMS",
-    "VELOCITY_PARAMS",
     "BoxParams",
     "HeadOutputs",
     "VelocityParams",

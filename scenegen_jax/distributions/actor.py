@@ -27,7 +27,7 @@ class HeadOutputs:
       location_logits: [H*W] location logits of the (true or sampled) class, row-major bins.
       box: [6K] raw box params of that class at the actor's bin (see `params`).
       heading: [4K] raw heading params.
-      velocity: [K + 5(K-1)] raw velocity params.
+      velocity: [velocity_params_size(K)] raw velocity params.
     """
 
     class_logits: jnp.ndarray

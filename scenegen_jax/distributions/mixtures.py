@@ -216,7 +216,7 @@ def velocity_proposal_score(
     direction), the mixture's own coordinates. The density over (vx, vy) carries 1 / s^2,
     which would make the slowest proposal win. Meaningless for a stationary proposal (a
     probability, not a density): whether the actor moves is drawn once, with probability
-    1 - pi_0 (`sampling.rollout.sample_attributes`)."""
+    1 - pi_0 (`sampling.attributes.sample_attributes`)."""
     speed_sq = jnp.sum(velocity * velocity)
     tiny = jnp.finfo(speed_sq.dtype).tiny
     lp = velocity_log_prob(raw, velocity, heading, relative, zero_speed)

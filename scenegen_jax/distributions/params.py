@@ -113,10 +113,6 @@ def initial_velocity_bias(k: int) -> np.ndarray:
     ).astype(np.float32)
 
 
-BOX_PARAMS = box_params_size
-HEADING_PARAMS = heading_params_size
-VELOCITY_PARAMS = velocity_params_size
-
 
 def _num_mixtures(raw: jnp.ndarray, per: int, offset: int, name: str) -> int:
     if raw.ndim != 1:

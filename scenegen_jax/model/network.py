@@ -31,11 +31,10 @@ from scenegen_jax.config import Config
 from scenegen_jax.distributions import params as P
 from scenegen_jax.distributions import uniforms
 from scenegen_jax.model import winograd
-from scenegen_jax.raster.actors import ACTOR_CHANNELS, window_origin, window_size
+from scenegen_jax.raster.actors import NUM_ACTOR_CHANNELS, window_origin, window_size
 from scenegen_jax.raster.map import NEAREST_LANE_CHANNELS, ORIENTATION_CHANNELS
 from scenegen_jax.scene import NUM_CLASSES
 
-NUM_ACTOR_CHANNELS = len(ACTOR_CHANNELS)
 ATTRIBUTES = ("box", "heading", "velocity")  # the attribute heads, in output order
 # The parameters that read the map channels, and the axis of the channels in each.
 MAP_CHANNEL_AXIS = {"lstm1_map": 2, **{f"{name}{layer}_map_w": 1
@@ -44,7 +43,7 @@ MAP_CHANNEL_AXIS = {"lstm1_map": 2, **{f"{name}{layer}_map_w": 1
 
 def attribute_sizes(k: int) -> tuple[int, int, int]:
     """Flat head sizes (box, heading, velocity) for K mixture components."""
-    return P.BOX_PARAMS(k), P.HEADING_PARAMS(k), P.VELOCITY_PARAMS(k)
+    return P.box_params_size(k), P.heading_params_size(k), P.velocity_params_size(k)
 
 
 def orientation_sectors(cos, sin, k: int):

@@ -1,6 +1,6 @@
 """Trained models shipped with the package, and the file format they are shipped in.
 
-A pretrained model is a directory holding exactly three files:
+A pretrained model is a directory of three files:
 
   config.json     the `Config` it was trained with (`Config.to_json`)
   params.msgpack  its parameters, serialised by `flax.serialization` (msgpack: plain arrays,
@@ -11,7 +11,8 @@ A pretrained model is a directory holding exactly three files:
                    `scenegen sample` and `evaluate` use unless told otherwise, e.g.
                    {"location_temperature": 0.7}}
 
-and a human-readable `MODEL_CARD.md` beside them. `load_pretrained(name)` finds `name` among
+(`save_pretrained`, `scenegen export-model`); a model shipped with the package also has a
+human-readable `MODEL_CARD.md` beside them. `load_pretrained(name)` finds `name` among
 the directories of this package (`available()`), or takes a path to such a directory,
 verifies the checksum and every array's shape against the config's model, and returns
 (config, parameters, manifest): no training state, no optimizer.

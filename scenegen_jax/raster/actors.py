@@ -26,12 +26,11 @@ from __future__ import annotations
 
 import math
 
-import jax
 import jax.numpy as jnp
 from jax import lax
 
 from scenegen_jax.config import Config
-from scenegen_jax.scene import PEDESTRIAN, Actors, pixel_of
+from scenegen_jax.scene import PEDESTRIAN, Actors, pixel_of, tree_take
 
 ACTOR_CHANNELS = (
     "occ_ego",
@@ -217,10 +216,6 @@ def empty_actor_raster(cfg: Config) -> jnp.ndarray:
     return jnp.zeros((h, h, NUM_ACTOR_CHANNELS), jnp.float32)
 
 
-def _take(actors: Actors, i: jnp.ndarray) -> Actors:
-    return jax.tree.map(lambda x: x[i], actors)
-
-
 def rasterize_actors(
     actors: Actors,
     ego: Actors,
@@ -247,7 +242,7 @@ def rasterize_actors(
         upto = jnp.clip(jnp.asarray(upto, jnp.int32), 0, n)
 
     def body(i, raster):
-        actor = _take(actors, i)
+        actor = tree_take(actors, i)
         actor = actor.replace(valid=actor.valid & (i < upto))
         return draw_actor(raster, actor, False, cfg, samples, max_box_m)
 

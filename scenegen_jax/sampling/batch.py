@@ -37,7 +37,7 @@ from scenegen_jax.sampling.rollout import (
     pad_given,
     rollout,
 )
-from scenegen_jax.scene import NUM_CLASSES, Actors, empty_actors
+from scenegen_jax.scene import NUM_CLASSES, Actors, empty_actors, tree_take
 
 
 @jax.jit
@@ -58,10 +58,6 @@ def scene_keys(key: jax.Array, num_maps: int, num_per_map: int, first: int = 0) 
     return scene_key(key, index)
 
 
-def _take(tree, i):
-    return jax.tree.map(lambda x: x[i], tree)
-
-
 def _sample_batch(keys, params, maps, egos, given, caps, temperature, *, cfg: Config,
                   options: SamplerOptions, model: Model | None) -> Sample:
     b, s = keys.shape[:2]
@@ -74,7 +70,7 @@ def _sample_batch(keys, params, maps, egos, given, caps, temperature, *, cfg: Co
 
     if b * s == 1:  # one scene (each call on CPU): no vmap, whose batching of the while loops
         # traced their bodies several times over (sampler trace 2.5 -> 0.5 s, `tiny`)
-        out = one(keys[0, 0], maps[0], _take(egos, 0), _take(given, 0), caps[0])
+        out = one(keys[0, 0], maps[0], tree_take(egos, 0), tree_take(given, 0), caps[0])
         return jax.tree.map(lambda x: x[None, None], out)
     if parallel >= b * s:
         per_map = jax.vmap(one, in_axes=(0, None, None, None, None))
@@ -85,7 +81,7 @@ def _sample_batch(keys, params, maps, egos, given, caps, temperature, *, cfg: Co
     def flat(x):  # scene (b, s) -> index b * S + s
         key, i = x
         key = jax.random.wrap_key_data(key, impl=impl)
-        return one(key, maps[i], _take(egos, i), _take(given, i), caps[i])
+        return one(key, maps[i], tree_take(egos, i), tree_take(given, i), caps[i])
 
     # Groups of `parallel` scenes; the last group is padded with copies of the last scene.
     n = b * s
@@ -374,6 +370,6 @@ def sample_on_cache(
         sample = jax.tree.map(lambda x: x[:, 0], jax.device_get(sample))
         for j in range(min(batch_size, scenes.stop - start)):
             row = jax.tree.map(lambda x, j=j: x[j], sample)
-            yield CacheScene(start + j, map_ids[j], map_of(map_ids[j]), _take(egos, j),
+            yield CacheScene(start + j, map_ids[j], map_of(map_ids[j]), tree_take(egos, j),
                              row.actors, int(row.num_given), int(row.stop_reason),
                              int(row.rejected), row.heatmaps, row.heatmap_cls)

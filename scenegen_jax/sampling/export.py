@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 import math
 import numbers
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -218,8 +218,10 @@ def _numpy(actors: Actors) -> Actors:
                     ("cls", "position", "size", "heading", "velocity", "valid")))
 
 
-def read_given(path: str, cfg: Config, scene_ego_sizes, allow_overlap: bool = False) -> list:
-    """Given actors (numpy Actors [N]) of each non-blank line of a `sample --given` file.
+def given_from_lines(lines: Iterable[str], path: str, cfg: Config, scene_ego_sizes,
+                     allow_overlap: bool = False) -> list:
+    """Given actors (numpy Actors [N]) of each non-blank line of a `sample --given` file:
+    `lines` are its lines, `path` its name for the errors.
 
     Line j of L lines conditions scenes j, j + L, ...; `scene_ego_sizes` [num scenes, 2]
     (width, length) m are the egos of the scenes to sample, so each line's boxes are checked
@@ -227,18 +229,17 @@ def read_given(path: str, cfg: Config, scene_ego_sizes, allow_overlap: bool = Fa
     the line and the field.
     """
     rows = []
-    with open(path) as f:
-        for line_no, line in enumerate(f, 1):
-            if not line.strip():
-                continue
-            where = f"{path}:{line_no}"
-            try:
-                row = json.loads(line)
-            except json.JSONDecodeError as e:
-                raise ValueError(f"{where}: not JSON ({e})") from e
-            if not isinstance(row, dict) or "actors" not in row:
-                raise ValueError(f'{where}: actors: missing (expected {{"actors": [...]}})')
-            rows.append((where, row["actors"]))
+    for line_no, line in enumerate(lines, 1):
+        if not line.strip():
+            continue
+        where = f"{path}:{line_no}"
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{where}: not JSON ({e})") from e
+        if not isinstance(row, dict) or "actors" not in row:
+            raise ValueError(f'{where}: actors: missing (expected {{"actors": [...]}})')
+        rows.append((where, row["actors"]))
     if not rows:
         raise ValueError(f"{path}: no given scenes")
     sizes = np.asarray(scene_ego_sizes, np.float64).reshape(-1, 2)

@@ -15,9 +15,10 @@ from scenegen_jax.model.network import SceneGenNet
 class Model(Protocol):
     """What the sampler needs from a network; every method takes the params first.
 
-    Arrays carry a leading batch axis of 1 (the rollout is unbatched). The recurrent state is
-    an opaque PyTree. `NetworkModel` (below) wraps `SceneGenNet`; tests substitute a fake
-    with known outputs.
+    The rollout is unbatched: arrays carry a leading axis of 1, except `attributes`, whose
+    features [R, h], classes [R] and map channels [R, Cm] are the R candidates of one step.
+    The recurrent state is an opaque PyTree. `NetworkModel` (below) wraps `SceneGenNet`;
+    tests substitute a fake with known outputs.
     """
 
     def initial_state(self, params: Any) -> Any: ...

@@ -53,6 +53,7 @@ Positions are strictly inside their bin, hence inside the region.
 from __future__ import annotations
 
 import dataclasses
+import enum
 from typing import Any
 
 import jax
@@ -83,6 +84,7 @@ from scenegen_jax.scene import (
     bin_index,
     canonical_order,
     empty_actors,
+    tree_take,
 )
 
 DEFAULT_CANDIDATES = 8
@@ -126,8 +128,17 @@ class SamplerOptions:
 
 DEFAULT_OPTIONS = SamplerOptions()
 
-# Why a scene ended (`Sample.stop_reason`).
-STOP_TOKEN, FULL, NO_BIN, COLLISION = 0, 1, 2, 3
+class StopReason(enum.IntEnum):
+    """Why a sampled scene ended (`Sample.stop_reason`; not the stop token's class id,
+    `scene.STOP`)."""
+
+    TOKEN = 0  # the model drew the stop token
+    FULL = 1  # every actor slot is filled
+    NO_BIN = 2  # the ordering mask and the location logits left no bin
+    COLLISION = 3  # every candidate of every round overlapped an earlier actor
+
+
+# Their names in sampled scenes' records, indexed by `StopReason`.
 STOP_REASONS = ("stop_token", "full", "no_bin", "collision")
 
 
@@ -145,7 +156,7 @@ class SamplerState:
       prev_bin: int32 [] bin of the last actor (0 before the first).
       done: bool [] the scene has ended.
       class_counts: int32 [3] actors per class so far (given ones included).
-      stop_reason: int32 [] one of STOP_TOKEN, FULL, NO_BIN, COLLISION (valid when done).
+      stop_reason: int32 [] a `StopReason` (valid when done).
       rejected: int32 [] candidates rejected for collisions so far.
       heatmaps: float32 [Sh, H*W] location distributions recorded at `heatmap_steps`.
       heatmap_cls: int32 [Sh] class of each recorded distribution (-1: step not reached,
@@ -191,10 +202,6 @@ class Sample:
 
 def _where(cond, x, y):
     return jax.tree.map(lambda a, b: jnp.where(cond, a, b), x, y)
-
-
-def _take(tree, i):
-    return jax.tree.map(lambda x: x[i], tree)
 
 
 def _candidates(key, params, model: Model, f, map_raster, cls, log_probs, cfg: Config,
@@ -257,7 +264,7 @@ def _place(key, params, model: Model, f, map_raster, cls, log_probs, state: Samp
         tried = jnp.zeros((n_bins,), bool).at[bins].set(True)
         banned = banned | (tried & jnp.logical_not(found))
         left = jnp.any(jnp.isfinite(jnp.where(banned, -jnp.inf, log_probs)))
-        return r + 1, banned, found, left, _take(cands, first), rejected + n_rejected
+        return r + 1, banned, found, left, tree_take(cands, first), rejected + n_rejected
 
     any_valid = jnp.any(jnp.isfinite(log_probs))
     init = (
@@ -265,7 +272,7 @@ def _place(key, params, model: Model, f, map_raster, cls, log_probs, state: Samp
         jnp.zeros((n_bins,), bool),
         jnp.bool_(False),
         any_valid,
-        _take(empty_actors(1), 0),
+        tree_take(empty_actors(1), 0),
         jnp.int32(0),
     )
     init = jax.tree.map(jnp.asarray, init)
@@ -345,7 +352,7 @@ def rollout(
         full_class = state.class_counts >= caps
         logits = logits.at[:NUM_CLASSES].set(jnp.where(full_class, -jnp.inf, logits[:NUM_CLASSES]))
         forced = t < n_given
-        g = _take(given, jnp.minimum(t, n - 1))
+        g = tree_take(given, jnp.minimum(t, n - 1))
         cls = jnp.where(forced, g.cls, sample_class(k_class, logits)).astype(jnp.int32)
         is_stop = cls == STOP
         safe_cls = jnp.where(is_stop, 0, cls)
@@ -369,7 +376,8 @@ def rollout(
         count = t + placed.astype(jnp.int32)
         done = jnp.logical_not(placed) | (count >= n)
         reason = jnp.select(
-            [placed, is_stop, jnp.logical_not(any_valid)], [FULL, STOP_TOKEN, NO_BIN], COLLISION
+            [placed, is_stop, jnp.logical_not(any_valid)],
+            [StopReason.FULL, StopReason.TOKEN, StopReason.NO_BIN], StopReason.COLLISION
         ).astype(jnp.int32)
         hit = steps == t
         probs = jnp.where(is_stop, 0.0, jnp.exp(log_probs))
@@ -401,7 +409,7 @@ def rollout(
         prev_bin=jnp.int32(0),
         done=jnp.bool_(n == 0),
         class_counts=jnp.zeros((NUM_CLASSES,), jnp.int32),
-        stop_reason=jnp.int32(FULL),
+        stop_reason=jnp.int32(StopReason.FULL),
         rejected=jnp.int32(0),
         heatmaps=jnp.zeros((steps.shape[0], n_bins), jnp.float32),
         heatmap_cls=jnp.full((steps.shape[0],), -1, jnp.int32),

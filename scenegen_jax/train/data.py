@@ -78,9 +78,11 @@ def _layout(seed: int, epoch: int, slots: tuple[int, ...]) -> tuple[np.ndarray, 
 
 
 @functools.lru_cache(maxsize=16)
-def _pass_permutation(seed: int, epoch: int, cache: int, size: int) -> np.ndarray:
-    """Cache `cache`'s scene order in its pass `epoch` (cache 0: the single-cache order)."""
-    key = [seed, epoch] if cache == 0 else [seed, epoch, cache]
+def _pass_permutation(seed: int, pass_index: int, cache: int, size: int) -> np.ndarray:
+    """Cache `cache`'s scene order in its pass `pass_index` over its scenes (not a virtual
+    epoch: a cache drawn more often than its size per epoch passes over its scenes faster;
+    cache 0: the single-cache order)."""
+    key = [seed, pass_index] if cache == 0 else [seed, pass_index, cache]
     perm = np.random.default_rng(key).permutation(size)
     perm.flags.writeable = False
     return perm

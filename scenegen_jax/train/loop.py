@@ -30,13 +30,18 @@ from scenegen_jax.scene import CLASS_NAMES
 from scenegen_jax.train.data import resolve_weights, union_indices
 from scenegen_jax.train.step import (
     TrainState,
-    first_train_step,
     init_state,
     make_optimizer,
     resolve_remat,
     start_ema,
+    train_step_for_run,
 )
-from scenegen_jax.workdir import CHECKPOINTS, CONFIG_FILE, load_params, load_workdir_config
+from scenegen_jax.workdir import (
+    CHECKPOINTS,
+    CONFIG_FILE,
+    load_params,
+    restore,
+)
 
 log = logging.getLogger(__name__)
 DATA_FILE = "data.json"
@@ -134,9 +139,12 @@ def drop_metrics_after(path: str, step: int) -> None:
 
 
 def summarize(stats: dict) -> dict:
-    """Host-side metrics from summed stats: loss, NLL per scene by term, per actor by class."""
+    """Host-side metrics from summed stats: loss and gradient norm per batch, NLL per scene by
+    term, per actor by class."""
     scenes = max(float(stats["scenes"]), 1.0)
-    out = {"loss": float(stats["loss"]) / float(stats["batches"])}
+    batches = float(stats["batches"])
+    out = {"loss": float(stats["loss"]) / batches,
+           "grad_norm": float(stats["grad_norm"]) / batches}
     out.update({f"nll_{k}": float(stats[f"nll_{k}"]) / scenes for k in TERMS})
     for name in CLASS_NAMES:
         count = float(stats[f"count_{name}"])
@@ -227,7 +235,7 @@ def train(
         batch = to_device(host, data_sharding, cfg.batch_size)
         if step_fn is None:  # remat resolved once, for the programs the run compiles
             step_cfg = resolve_remat(cfg, cfg.batch_size // mesh.size)
-            step_fn = first_train_step(step_cfg, state, batch, mesh, steps - step)
+            step_fn = train_step_for_run(step_cfg, state, batch, mesh, steps - step)
         state, stats = step_fn(state, batch)
         stats = {**stats, "batches": 1}
         acc = stats if acc is None else jax.tree.map(lambda a, b: a + b, acc, stats)
@@ -250,7 +258,7 @@ def train(
             log.info("time budget of %.0f s used after step %d; stopping", max_seconds, done)
             break
     bar.close()
-    if hasattr(step_fn, "close"):  # a background compile still running (`first_train_step`)
+    if hasattr(step_fn, "close"):  # a background compile still running (`train_step_for_run`)
         step_fn.close()
     ckpt.close()
     return state
@@ -394,14 +402,4 @@ def warm_start(params, source, name: str, channels: tuple[str, ...] | None = Non
 def load_trained(workdir: str, step: int | None = None) -> tuple[Config, TrainState]:
     """(config, train state) of a training workdir: the latest readable checkpoint, or the
     one saved at `step`."""
-    cfg = load_workdir_config(workdir)
-    if not os.path.isdir(os.path.join(workdir, CHECKPOINTS)):
-        raise FileNotFoundError(
-            f"{workdir}/{CHECKPOINTS}: no checkpoints (train this workdir first)"
-        )
-    ckpt = Checkpointer(os.path.join(workdir, CHECKPOINTS), every=1)
-    state = ckpt.restore_latest(jax.eval_shape(lambda: init_state(cfg)), step)
-    ckpt.close()
-    if state is None:
-        raise FileNotFoundError(f"{workdir}/{CHECKPOINTS}: no readable checkpoint")
-    return cfg, state
+    return restore(workdir, lambda cfg: jax.eval_shape(lambda: init_state(cfg)), step)

@@ -417,7 +417,7 @@ class QuickStartTrainStep:
             self._pool.shutdown(wait=True)
 
 
-def first_train_step(cfg: Config, state: TrainState, batch: Batch, mesh: Mesh | None,
+def train_step_for_run(cfg: Config, state: TrainState, batch: Batch, mesh: Mesh | None,
                      steps: int):
     """The train step a run of `steps` more steps starts with: `QuickStartTrainStep` where
     `backend.quick_start_training` (XLA:CPU, one device), else `compile_train_step`. Call
