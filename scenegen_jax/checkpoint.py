@@ -33,6 +33,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 
 from scenegen_jax.backend import is_main_process, sync_processes
+from scenegen_jax.jsonfile import read_json
 
 log = logging.getLogger(__name__)
 CHECKSUM_FILE = "scenegen_sha256.json"
@@ -139,9 +140,8 @@ class Checkpointer:
             log.warning("%s: no checksums (saved by an older version); not verified", path)
             return None
         try:
-            with open(path) as f:
-                want = json.load(f)
-        except (OSError, json.JSONDecodeError) as e:
+            want = read_json(path)
+        except (OSError, ValueError) as e:
             raise DamagedCheckpoint(f"{path}: unreadable checksums ({e})") from e
         if not isinstance(want, dict):
             raise DamagedCheckpoint(f"{path}: checksums are not a JSON object")

@@ -10,6 +10,8 @@ import json
 import math
 from typing import Any
 
+from scenegen_jax.jsonfile import parse_json
+
 # Map layer groups and the raster channels each contributes, in channel order.
 LAYER_GROUPS: dict[str, tuple[str, ...]] = {
     "lanes": (
@@ -229,10 +231,7 @@ class Config:
     @classmethod
     def from_json(cls, text: str, source: str = "config") -> Config:
         """The config of `to_json` text; errors name `source` (a file) and the field."""
-        try:
-            d = json.loads(text)
-        except ValueError as e:  # JSONDecodeError, or an integer beyond Python's digit limit
-            raise ValueError(f"{source}: not valid JSON ({e})") from e
+        d = parse_json(text, source)
         if not isinstance(d, dict):
             raise ValueError(f"{source}: expected a JSON object of config fields")
         fields = {f.name: f for f in dataclasses.fields(cls)}
@@ -381,7 +380,7 @@ PRESETS: dict[str, Config] = {
 }
 
 
-def get_config(name: str, **overrides: Any) -> Config:
+def get_config(name: str, /, **overrides: Any) -> Config:
     """Returns a preset with `overrides` applied (values parsed from strings if needed)."""
     if name not in PRESETS:
         raise ValueError(f"unknown config {name!r}; choose one of {sorted(PRESETS)}")
@@ -409,16 +408,18 @@ def _parse(current: Any, value: Any, key: str = "value") -> Any:
             also = ' (or "auto")' if key == "remat" else ""
             raise ValueError(f"{key}: must be true or false{also}, got {value!r}")
         return value.lower() == "true"
+    if isinstance(current, tuple) and value.lower() in ("", "none"):
+        return ()
     try:
         if isinstance(current, int):
             return int(value)
         if isinstance(current, float):
             return float(value)
+        if isinstance(current, tuple):
+            items = [v for v in value.split(",") if v]
+            return tuple(type(current[0])(v) if current else v for v in items)
     except ValueError as e:
-        raise ValueError(f"{key}: expected {type(current).__name__}, got {value!r}") from e
-    if isinstance(current, tuple):
-        if value.lower() in ("", "none"):
-            return ()
-        items = [v for v in value.split(",") if v]
-        return tuple(type(current[0])(v) if current else v for v in items)
+        kind = f"a list of {type(current[0]).__name__}" if isinstance(current, tuple) else \
+            type(current).__name__
+        raise ValueError(f"{key}: expected {kind}, got {value!r}") from e
     return value

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 
 import numpy as np
@@ -44,3 +45,38 @@ class Frame:
     @property
     def num_actors(self) -> int:
         return int(self.cls.shape[0])
+
+
+# Beyond these a row is damaged, not a road user, in every source: boxes longer or wider
+# than MAX_SIZE_M (articulated buses are ~18 m) and speeds above MAX_SPEED_MPS (360 km/h).
+MAX_SIZE_M = 30.0
+MAX_SPEED_MPS = 100.0
+
+
+def drop_beyond_limits(frame: Frame) -> tuple[Frame, collections.Counter]:
+    """The frame without the actors whose box or speed is beyond the limits above, and their
+    count by reason ("invalid:size", "invalid:speed").
+
+    Raises:
+      ValueError naming the frame's source, scene and field when the ego is beyond them.
+    """
+    where = f"{frame.source}: scene {frame.scene_id}"
+    ego_size = np.asarray(frame.ego_size, np.float64)
+    if not np.all(ego_size <= MAX_SIZE_M):
+        raise ValueError(f"{where}: ego width/length: {ego_size.tolist()} m, beyond "
+                         f"{MAX_SIZE_M:g} m")
+    ego_speed = float(np.linalg.norm(frame.ego_velocity))
+    if not ego_speed <= MAX_SPEED_MPS:
+        raise ValueError(f"{where}: ego velocity: speed {ego_speed:.4g} m/s, beyond "
+                         f"{MAX_SPEED_MPS:g} m/s")
+    too_big = ~np.all(np.asarray(frame.size, np.float64) <= MAX_SIZE_M, axis=1)
+    too_fast = ~too_big & ~(np.linalg.norm(frame.velocity, axis=1) <= MAX_SPEED_MPS)
+    drops = collections.Counter({"invalid:size": int(too_big.sum()),
+                                 "invalid:speed": int(too_fast.sum())})
+    if not drops.total():
+        return frame, collections.Counter()
+    keep = ~(too_big | too_fast)
+    return dataclasses.replace(
+        frame, **{f: getattr(frame, f)[keep]
+                  for f in ("cls", "position", "size", "heading", "velocity", "track_id")}
+    ), +drops

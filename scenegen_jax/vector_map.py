@@ -136,6 +136,14 @@ class VectorMap:
         return dataclasses.replace(self, **{kind: keep(kind) for kind in self._boxes})
 
 
+def distinct_points(points: np.ndarray, tol_m: float = 1e-9) -> np.ndarray:
+    """bool [P]: the points of a polyline [P, 2] that do not repeat the previous one (within
+    `tol_m`); the first point always counts."""
+    keep = np.ones(len(points), bool)
+    keep[1:] = np.linalg.norm(np.diff(points, axis=0), axis=1) > tol_m
+    return keep
+
+
 def resample_polyline(points: np.ndarray, n: int) -> np.ndarray:
     """n points equally spaced by arc length along a polyline [P, 2]."""
     points = np.asarray(points, np.float64)

@@ -121,7 +121,31 @@ def _missing_pretrained(tmp_path, cache, data_root):
     return argv, "no_model"
 
 
+def _set_without_value(tmp_path, cache, data_root):
+    return ["prepare", "--root", data_root, "--out", str(tmp_path / "o"), "--set",
+            "batch_size"], "--set 'batch_size'"
+
+
+def _set_of_the_preset_name(tmp_path, cache, data_root):
+    return ["prepare", "--root", data_root, "--out", str(tmp_path / "o"), "--set",
+            "name=cpu"], "--config"
+
+
+def _bad_list_value(tmp_path, cache, data_root):
+    return ["prepare", "--root", data_root, "--out", str(tmp_path / "o"), "--set",
+            "ego_size_m=1,abc"], "ego_size_m: expected a list of float, got '1,abc'"
+
+
+def _score_out_is_a_directory(tmp_path, cache, data_root):
+    argv = ["score", "--pretrained", "cpu-av2-womd", "--data", cache, "--out", str(tmp_path)]
+    return argv, f"--out {tmp_path}: a directory"
+
+
 CASES = [
+    _set_without_value,
+    _set_of_the_preset_name,
+    _bad_list_value,
+    _score_out_is_a_directory,
     _damaged_log_root,
     _truncated_actors,
     _truncated_maps,
@@ -160,3 +184,28 @@ def test_verbose_adds_the_traceback(cache_dir, data_root, tmp_path, caplog):
     code, errors = _run(["-v", *argv], caplog)
     assert code == 2 and len(errors) == 1
     assert named in errors[0].getMessage() and errors[0].exc_info is not None
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["train", "--data", "c", "--workdir", "w", "--log-every", "0"],
+         "argument --log-every: '0' must be an integer >= 1"),
+        (["train", "--data", "c", "--workdir", "w", "--keep", "0"],
+         "argument --keep: '0' must be an integer >= 1"),
+        (["train", "--data", "c", "--workdir", "w", "--steps", "-5"],
+         "argument --steps: '-5' must be an integer >= 0"),
+        (["train", "--data", "c", "--workdir", "w", "--minutes", "nan"],
+         "argument --minutes: 'nan' must be a finite number"),
+        (["compare", "--a", "a", "--b", "b", "--block", "0"],
+         "argument --block: '0' must be an integer >= 1"),
+        (["compare", "--a", "a", "--b", "b", "--seed", "x"],
+         "argument --seed: 'x' is not an integer"),
+        (["render", "--cache", "c", "--rotate", "inf"],
+         "argument --rotate: 'inf' must be a finite number"),
+    ],
+)
+def test_flag_values_are_checked_before_any_work(argv, message, capsys):
+    with pytest.raises(SystemExit) as e:
+        cli.main(argv)
+    assert e.value.code == 2 and message in capsys.readouterr().err

@@ -38,8 +38,10 @@ def test_point_estimate_by_hand():
     assert paired_difference([a, a], [b, a], cls=0)["diff"] == pytest.approx(0.75)
     none = paired_difference([a], [b], cls=2)
     assert none["actors"] == 0 and none["diff"] is None
-    same = paired_difference([a], [a])
+    same = paired_difference([a], [a], block=1)
     assert (same["diff"], same["low"], same["high"]) == (0.0, 0.0, 0.0)
+    # The two scenes make one block of 10: no interval, the estimate still.
+    assert paired_difference([a], [b], cls=0)["low"] is None
 
 
 def test_interval_matches_scipy_bootstrap_for_single_scene_blocks():
@@ -89,3 +91,29 @@ def test_files_of_other_scenes_or_fields_are_errors(tmp_path, capsys):
         load_scores(str(broken))
     with pytest.raises(SystemExit):
         main(["compare", "--a", str(a), "--b", str(broken)])
+
+
+def test_damaged_files_and_bad_options_are_named(tmp_path):
+    cls, valid = [[0, STOP], [0, STOP]], [[True, True], [True, True]]
+    good = _scores([[3.0, 1.0], [2.0, 1.0]], cls, valid)
+    nan = {**good, "location": np.array([[np.nan, 1.0], [2.0, 1.0]], np.float32)}
+    np.savez(tmp_path / "nan.npz", **nan)
+    with pytest.raises(ValueError, match=r"nan.npz: field 'location': NaN or inf at an actor"):
+        load_scores(str(tmp_path / "nan.npz"))
+    # NaN at a padded step (not an actor's) is no actor's NLL: read as it is.
+    pad = {**good, "location": np.array([[3.0, 1.0], [2.0, np.nan]], np.float32),
+           "step_valid": np.array([[True, True], [True, False]])}
+    np.savez(tmp_path / "pad.npz", **pad)
+    assert load_scores(str(tmp_path / "pad.npz"))["location"].shape == (2, 2)
+    np.savez(tmp_path / "short.npz", **{**good, "box": np.zeros((2, 1), np.float32)})
+    with pytest.raises(ValueError, match=r"short.npz: field 'box': shape \(2, 1\)"):
+        load_scores(str(tmp_path / "short.npz"))
+    np.savez(tmp_path / "objects.npz", **{**good, "class": np.array([None, 1], object)})
+    with pytest.raises(ValueError, match="objects.npz: not a `score --actors-out` .npz"):
+        load_scores(str(tmp_path / "objects.npz"))
+    (tmp_path / "scores.csv").write_text("scene,nll\n0,1.0\n")
+    with pytest.raises(ValueError, match="scores.csv: not a `score --actors-out` .npz"):
+        load_scores(str(tmp_path / "scores.csv"))
+    for option, value in (("block", 0), ("samples", -5), ("seed", -1)):
+        with pytest.raises(ValueError, match=f"--{option}: expected an integer >= "):
+            paired_difference([good], [good], **{option: value})

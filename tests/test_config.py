@@ -93,12 +93,13 @@ def test_loading_a_workdir_without_checkpoints_creates_nothing(tmp_path):
     assert os.listdir(workdir) == ["config.json"]
 
 
-def test_cli_rejects_zero_sizes_before_any_work(caplog):
+def test_cli_rejects_zero_sizes_before_any_work(caplog, capsys):
     from scenegen_jax.cli import main
 
-    with pytest.raises(SystemExit, match="--batch-size must be >= 1"):
+    with pytest.raises(SystemExit, match="2"):
         main(["score", "--workdir", "nowhere", "--data", "nowhere", "--out", "x.csv",
               "--batch-size", "0"])
+    assert "argument --batch-size: '0' must be an integer >= 1" in capsys.readouterr().err
     with pytest.raises(SystemExit, match="--num must be >= 1"):
         main(["evaluate", "--workdir", "nowhere", "--data", "x", "--train-data", "y",
               "--num", "0", "--out", "r.json"])

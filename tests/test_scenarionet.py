@@ -512,6 +512,10 @@ def test_length_shorter_than_width_is_sorted_and_counted():
         ),
         (lambda s: s.update(metadata=[1]), r"f\.pkl: metadata: expected a dict"),
         (
+            lambda s: s["tracks"]["AV"].update(type="PEDESTRIAN"),
+            r"f\.pkl: tracks\['AV'\]\.type: the SDC \(ego\) is a PEDESTRIAN, not a vehicle",
+        ),
+        (
             lambda s: s["tracks"]["AV"]["state"]["valid"].__setitem__(1, False),
             r"\['AV'\]\.state\.valid\[1\]: the SDC",
         ),
@@ -805,6 +809,12 @@ def test_stride_skips_steps_where_the_sdc_is_invalid_and_checks_arguments():
     assert [g.frame.scene_id.rsplit("/", 1)[1] for g in got] == [
         "0", "10", "30", "40", "50", "60", "70", "80", "90"
     ]  # fmt: skip
+    # The skipped step is counted, in the first frame.
+    assert [g.dropped["frame:no_ego"] for g in got] == [1] + [0] * 8
+    sdc["valid"][::10] = False
+    with pytest.raises(ValueError, match=r"s\.pkl: tracks\[.*\]\.state\.valid: the SDC \(ego\) "
+                       r"is valid at none of the steps 0, 10, \.\.\. of 91"):
+        sn.frames_from_scenario(s, "s.pkl", stride=10)
     with pytest.raises(ValueError, match=r"s\.pkl: stride: give only one"):
         sn.frames_from_scenario(s, "s.pkl", 3, stride=10)
     with pytest.raises(ValueError, match=r"s\.pkl: stride: expected a positive integer"):

@@ -205,6 +205,43 @@ def test_lanes_outlined_together_are_each_outlined_alone():
 # ---------------------------------------------------------------- the real files
 
 
+def test_damaged_fields_are_named_or_counted():
+    # `valid` must hold booleans: the strings "false" would all read as true.
+    data = _scene(False, sdc=0)
+    data["objects"][3]["valid"] = ["false"] * 21
+    with pytest.raises(ValueError, match=r"x\.json: objects\[3\]\.valid: expected booleans, "
+                       r"got 'false'"):
+        W.frames_from_scenario(data, "x.json", 10)
+    data["objects"][3]["valid"] = 5
+    with pytest.raises(ValueError, match=r"x\.json: objects\[3\]\.valid: expected a list"):
+        W.frames_from_scenario(data, "x.json", 10)
+    # A road with no points is a counted degenerate feature, as one with a single point.
+    data = _scene(False, sdc=0)
+    data["roads"] += [{"geometry": [], "type": "road_line"},
+                      {"geometry": [{"x": 1.0, "y": 2.0}], "type": "road_line"}]
+    assert W.frames_from_scenario(data, "x.json", 10)[1]["map:degenerate_road_line"] == 2
+    # Steps of the stride at which the ego is not valid are counted; none at all is an error.
+    data = _scene(False, sdc=0)
+    data["objects"][0]["valid"][10] = False
+    frames, drops = W.frames_from_scenario(data, "x.json", 10)
+    assert [f.scene_id for f in frames] == ["x/0", "x/20"] and drops["frame:no_ego"] == 1
+    data["objects"][0]["valid"] = [False] * 21
+    with pytest.raises(ValueError, match=r"x\.json: objects \(the SDC, id 0\)\.valid: the SDC "
+                       r"is valid at none of the steps 0, 10, \.\.\. of 21"):
+        W.frames_from_scenario(data, "x.json", 10)
+
+
+def test_deeply_nested_json_is_a_counted_bad_file(tmp_path):
+    src = tmp_path / "src"
+    src.mkdir()
+    (src / "good.json").write_text(json.dumps(_scene(False, sdc=0)))
+    (src / "deep.json").write_text("[" * 100_000 + "]" * 100_000)
+    spec = source_spec("womd_json", str(src), None, 10)
+    summary, _ = prepare(spec, str(tmp_path / "cache"), get_config("tiny"), workers=1)
+    assert summary.scenes == 3 and summary.bad_files == {"ValueError": 1}
+    assert "deep.json: not valid JSON (nested too deeply)" in summary.bad_file_list[0]["error"]
+
+
 @pytest.fixture(scope="module")
 def womd_files(womd_root):
     return [str(p) for p in W.scenario_files(os.path.join(womd_root, "gpudrive_json"))]
@@ -324,3 +361,18 @@ def test_real_vehicles_on_the_drivable_surface(tmp_path, womd_root):
     check = real_data_check(load_cache(str(tmp_path / "c")), cfg)
     assert check["moving_drivable_share"] > 0.95, check
     assert check["drivable_share"] > 0.55, check
+
+
+def test_strict_names_the_file_of_any_reader_error(monkeypatch):
+    """--strict stops at the first unusable file with the CLI's bad-input error (ValueError,
+    naming the file), whatever a reader raised: here a KeyError."""
+    from scenegen_jax.data import prepare as P
+
+    def broken(spec, path):
+        raise KeyError("position")
+
+    monkeypatch.setattr(P, "read_file", broken)
+    spec = source_spec("womd_json", "root", None, 10)
+    assert P.encode_file(spec, "f.json", get_config("tiny")).error == "KeyError: 'position'"
+    with pytest.raises(ValueError, match=r"^f\.json: KeyError: 'position'$"):
+        P.encode_file(spec, "f.json", get_config("tiny"), strict=True)

@@ -13,8 +13,10 @@ def overrides(pairs: list[str]) -> dict[str, str]:
     out = {}
     for pair in pairs or []:
         if "=" not in pair:
-            raise SystemExit(f"override {pair!r} must look like field=value")
+            raise ValueError(f"--set {pair!r}: must look like FIELD=VALUE")
         k, v = pair.split("=", 1)
+        if k == "name":
+            raise ValueError(f"--set {pair!r}: the preset's name is chosen with --config")
         out[k] = v
     return out
 
@@ -61,17 +63,43 @@ def add_model_args(sp) -> None:
     sp.add_argument("--step", type=int, help="checkpoint step of --workdir (default: the latest)")
 
 
-def positive_float(text: str) -> float:
-    """argparse type: a finite number > 0."""
+def finite_float(text: str) -> float:
+    """argparse type: a finite number."""
     import math
 
     try:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not (value > 0 and math.isfinite(value)):
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{text!r} must be a finite number")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite number > 0."""
+    value = finite_float(text)
+    if not value > 0:
         raise argparse.ArgumentTypeError(f"{text!r} must be a finite number > 0")
     return value
+
+
+def _integer_at_least(least: int):
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+        if value < least:
+            raise argparse.ArgumentTypeError(f"{text!r} must be an integer >= {least}")
+        return value
+
+    parse.__name__ = f"integer >= {least}"  # argparse names the type in some errors
+    return parse
+
+
+positive_int = _integer_at_least(1)  # argparse types
+nonnegative_int = _integer_at_least(0)
 
 
 def add_temperature_arg(sp) -> None:

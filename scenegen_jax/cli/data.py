@@ -8,7 +8,7 @@ import sys
 
 from tqdm import tqdm
 
-from scenegen_jax.cli.common import overrides
+from scenegen_jax.cli.common import finite_float, overrides
 from scenegen_jax.config import PRESETS, Config, apply_overrides, get_config
 from scenegen_jax.data.sources import DEFAULT_STRIDE, SOURCES
 
@@ -101,6 +101,7 @@ def add_parsers(sub) -> None:
     sp.add_argument("--cache", required=True)
     sp.add_argument("--index", type=int, nargs="*", help="scene indices (default 0)")
     sp.add_argument("--out", required=True, help="PNG path (numbered when several indices)")
-    sp.add_argument("--rotate", type=float, default=0.0, help="rotate about the ego, degrees")
+    sp.add_argument("--rotate", type=finite_float, default=0.0,
+                    help="rotate about the ego, degrees")
     sp.add_argument("--set", nargs="*", metavar="FIELD=VALUE", help="config overrides")
     sp.set_defaults(func=cmd_render)

@@ -7,8 +7,10 @@ import json
 
 from scenegen_jax.cli.common import (
     add_distributed_args,
+    nonnegative_int,
     overrides,
     positive_float,
+    positive_int,
     start_distributed,
 )
 from scenegen_jax.config import PRESETS, get_config
@@ -70,11 +72,13 @@ def add_parsers(sub) -> None:
                     "W_i / sum(W) (default: the scene counts, uniform over all scenes)")
     sp.add_argument("--workdir", required=True,
                     help="checkpoints, config.json, data.json, metrics.jsonl")
-    sp.add_argument("--steps", type=int, default=1000, help="total steps (resumes if fewer done)")
-    sp.add_argument("--save-every", type=int, default=100)
-    sp.add_argument("--log-every", type=int, default=10)
-    sp.add_argument("--keep", type=int, default=3, help="checkpoints kept")
-    sp.add_argument("--minutes", type=float, help="wall-time budget; stops and saves after it")
+    sp.add_argument("--steps", type=nonnegative_int, default=1000,
+                    help="total steps (resumes if fewer done)")
+    sp.add_argument("--save-every", type=positive_int, default=100)
+    sp.add_argument("--log-every", type=positive_int, default=10)
+    sp.add_argument("--keep", type=positive_int, default=3, help="checkpoints kept")
+    sp.add_argument("--minutes", type=positive_float,
+                    help="wall-time budget; stops and saves after it")
     sp.add_argument(
         "--init-from",
         metavar="WORKDIR|MODEL",

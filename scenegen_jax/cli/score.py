@@ -13,6 +13,8 @@ from scenegen_jax.cli.common import (
     load_model,
     location_temperature,
     merge_parts,
+    nonnegative_int,
+    positive_int,
     start_distributed,
 )
 
@@ -32,10 +34,11 @@ def cmd_score(args) -> None:
         summarize_scores,
     )
 
-    if args.top_k < 0 or (args.top_k and not args.render):
-        raise SystemExit("--top-k K needs K >= 0 and --render DIR")
-    if args.batch_size < 1:
-        raise SystemExit(f"--batch-size must be >= 1, got {args.batch_size}")
+    if args.top_k and not args.render:
+        raise SystemExit("--top-k K needs --render DIR")
+    for flag, path in (("--out", args.out), ("--actors-out", args.actors_out)):
+        if path and os.path.isdir(path):  # found now, not after the scoring
+            raise ValueError(f"{flag} {path}: a directory; give a file path")
     start_distributed(args)
     cfg, params, _, _ = load_model(args)
     cache = load_union(args.data, cfg)  # every --data cache, its scenes one after another
@@ -149,7 +152,10 @@ def cmd_compare(args) -> None:
             json.dump(report, f, indent=1)
     print(f"{args.term} NLL per actor, A minus B (95% block-bootstrap interval)")
     for name, r in report["rows"].items():
-        if r["actors"]:
+        if r["actors"] and r["low"] is None:
+            print(f"  {name:<11} {r['diff']:+.3f} (no interval: the scenes make one block of "
+                  f"--block {args.block})  ({r['actors']} actors)")
+        elif r["actors"]:
             print(f"  {name:<11} {r['diff']:+.3f} [{r['low']:+.3f}, {r['high']:+.3f}]"
                   f"  ({r['actors']} actors)")
         else:
@@ -164,11 +170,11 @@ def add_parsers(sub) -> None:
     sp.add_argument("--data", required=True, nargs="+", metavar="CACHE",
                     help="cache directories to score (summary also per source)")
     sp.add_argument("--out", required=True, help="CSV, one row per scene (with its source)")
-    sp.add_argument("--batch-size", type=int, default=8,
+    sp.add_argument("--batch-size", type=positive_int, default=8,
                     help="scenes per batch and device, split into concurrent calls (one per "
                     "core on CPU)")
     sp.add_argument("--actors-out", help="optional .npz of per-step NLL terms")
-    sp.add_argument("--top-k", type=int, default=0,
+    sp.add_argument("--top-k", type=nonnegative_int, default=0,
                     help="render the K scenes with the highest NLL per actor (needs --render)")
     sp.add_argument("--render", help="directory for the --top-k renders")
     sp.set_defaults(func=cmd_score)
@@ -193,8 +199,9 @@ def add_parsers(sub) -> None:
     sp.add_argument("--b", nargs="+", required=True, help="model B's, paired with --a in order")
     sp.add_argument("--term", default="location",
                     help="class, location, box, heading, velocity or total")
-    sp.add_argument("--block", type=int, default=10, help="consecutive scenes per bootstrap block")
-    sp.add_argument("--samples", type=int, default=2000, help="bootstrap resamples")
-    sp.add_argument("--seed", type=int, default=0)
+    sp.add_argument("--block", type=positive_int, default=10,
+                    help="consecutive scenes per bootstrap block")
+    sp.add_argument("--samples", type=positive_int, default=2000, help="bootstrap resamples")
+    sp.add_argument("--seed", type=nonnegative_int, default=0)
     sp.add_argument("--out", help="optional report JSON")
     sp.set_defaults(func=cmd_compare)

@@ -20,7 +20,7 @@ from collections.abc import Iterator
 import numpy as np
 
 from scenegen_jax.data.av2_map import read_map
-from scenegen_jax.frame import Frame
+from scenegen_jax.frame import MAX_SIZE_M, Frame
 from scenegen_jax.scene import BICYCLIST, PEDESTRIAN, VEHICLE, wrap_angle
 from scenegen_jax.vector_map import VectorMap
 
@@ -74,8 +74,6 @@ POSE_COLUMNS = ("timestamp_ns", "qw", "qx", "qy", "qz", "tx_m", "ty_m", "tz_m")
 FIELD_KINDS = {"timestamp_ns": "integer", "track_uuid": "string", "category": "string"}
 # Nominal ego footprint (Argoverse 2 vehicles), (width, length) m.
 AV2_EGO_SIZE = (1.95, 4.88)
-# Longer or wider boxes are not road users (articulated buses are ~18 m), m.
-MAX_SIZE_M = 30.0
 # Quaternions whose norm is further than this from 1 are not rotations.
 QUATERNION_NORM_TOL = 1e-3
 

@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import collections
 import glob
-import json
 import logging
 import os
 
 import numpy as np
 
+from scenegen_jax.jsonfile import read_json
 from scenegen_jax.vector_map import LANE_TYPES, Lane, VectorMap
 
 log = logging.getLogger(__name__)
@@ -27,9 +27,8 @@ def read_map(log_dir: str) -> tuple[VectorMap, collections.Counter]:
         )
     path = paths[0]
     try:
-        with open(path) as f:
-            data = json.load(f)
-    except (OSError, ValueError) as e:  # ValueError: bad JSON or UTF-8, an over-long integer
+        data = read_json(path)
+    except OSError as e:
         raise ValueError(f"{path}: unreadable map JSON ({e})") from e
     return vector_map_from_json(data, path)
 

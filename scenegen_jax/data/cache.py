@@ -31,6 +31,7 @@ import numpy as np
 
 from scenegen_jax.config import Config
 from scenegen_jax.frame import Frame
+from scenegen_jax.jsonfile import read_json
 from scenegen_jax.raster.map import ALL_MAP_CHANNELS, rasterize_map
 from scenegen_jax.scene import CLASS_NAMES, Actors, in_region, make_ego
 
@@ -354,11 +355,7 @@ def load_cache(path: str) -> Cache:
         if os.path.isdir(path) and any(SHARD_RE.fullmatch(n) for n in os.listdir(path)):
             return _load_sharded(path)
         raise FileNotFoundError(f"{meta_path}: not a scenegen cache (run `scenegen prepare`)")
-    try:
-        with open(meta_path) as f:
-            meta = json.load(f)
-    except ValueError as e:  # JSONDecodeError, UnicodeDecodeError, an over-long integer
-        raise ValueError(f"{meta_path}: not valid JSON ({e})") from e
+    meta = read_json(meta_path)
     if not isinstance(meta, dict) or not isinstance(meta.get("scene_ids"), list):
         raise ValueError(f"{meta_path}: field scene_ids: missing or not a list")
     if meta.get("version") != CACHE_VERSION:

@@ -28,8 +28,10 @@ from scenegen_jax.data.cache import (
 from scenegen_jax.data.sources import read_file, source_files
 
 log = logging.getLogger(__name__)
-# What a damaged or foreign file raises in our readers (ValueError includes JSON errors).
-FILE_ERRORS = (ValueError, OSError, EOFError, pickle.UnpicklingError, KeyError, TypeError)
+# What a damaged or foreign file raises in our readers (ValueError includes JSON errors;
+# RecursionError: a pickle nested too deeply).
+FILE_ERRORS = (ValueError, OSError, EOFError, pickle.UnpicklingError, KeyError, TypeError,
+               RecursionError)
 
 
 class FileResult(NamedTuple):
@@ -44,9 +46,12 @@ def encode_file(spec: dict, path: str, cfg: Config, strict: bool = False) -> Fil
     try:
         frames, drops = read_file(spec, path)
     except FILE_ERRORS as e:
-        if strict:
+        error = f"{type(e).__name__}: {e}"
+        if not strict:
+            return FileResult(path, [], collections.Counter(), error)
+        if isinstance(e, (ValueError, OSError)):
             raise
-        return FileResult(path, [], collections.Counter(), f"{type(e).__name__}: {e}")
+        raise ValueError(f"{path}: {error}") from e  # the CLI's bad-input error, naming the file
     return FileResult(path, [encode_frame(f, cfg) for f in frames], drops, None)
 
 

@@ -100,7 +100,7 @@ from scenegen_jax.data.scenarionet_tracks import (
     velocity_mismatch,
 )
 from scenegen_jax.frame import Frame
-from scenegen_jax.scene import PEDESTRIAN, wrap_angle
+from scenegen_jax.scene import PEDESTRIAN, VEHICLE, wrap_angle
 from scenegen_jax.vector_map import rotation_matrix
 
 __all__ = [
@@ -180,7 +180,8 @@ def frames_from_scenario(
       - "type:<TYPE>": a type with no class (OTHER, TRAFFIC_CONE, TRAFFIC_BARRIER, ...);
       - "invalid:nan": NaN/inf in the step's position, heading, velocity or box size;
       - "invalid:size": a vehicle or cyclist box with a non-positive length or width.
-      Counted but kept:
+      With `stride`, the steps at which the SDC is not valid give no frame, counted as
+      "frame:no_ego" in the first frame. Counted but kept:
       - "quirk:length_lt_width": a vehicle or cyclist box (the SDC's included) whose length is
         shorter than its width. Boxes have no preferred axis other than the heading's, and
         converters do write swapped sizes (nuScenes' early converter for every box but the
@@ -193,8 +194,9 @@ def frames_from_scenario(
 
     Raises:
       ValueError naming `source` and the field for missing keys (tracks, the SDC, map
-      features), bad shapes, an SDC that is invalid, non-finite or without a positive box
-      size at a requested step, or NaN/inf map geometry.
+      features), bad shapes, an SDC that is a pedestrian or cyclist, or is invalid,
+      non-finite or without a positive box size at a requested step (with `stride`: at every
+      step of the stride), or NaN/inf map geometry.
     """
     if not isinstance(scenario, Mapping):
         raise _err(source, "scenario", f"expected a dict, got {type(scenario).__name__}")
@@ -217,7 +219,14 @@ def frames_from_scenario(
         length = len(np.asarray(_get(sdc_state, "position", source, f"{sdc_field}.state")))
     read = {tid: _read_track(tid, v, length, source) for tid, v in tracks.items()}
     sdc = read[sdc_id]
+    if CLASS_FROM_TYPE.get(sdc.type, VEHICLE) != VEHICLE:
+        raise _err(source, f"{sdc_field}.type", f"the SDC (ego) is a {sdc.type}, not a vehicle")
     steps = _steps(time_index, all_steps, stride, sdc, meta, length, source)
+    # Steps of the stride at which the SDC is not valid give no frame: counted.
+    no_ego = len(range(0, length, stride)) - len(steps) if stride is not None else 0
+    if no_ego and not steps:
+        raise _err(source, f"{sdc_field}.state.valid",
+                   f"the SDC (ego) is valid at none of the steps 0, {stride}, ... of {length}")
 
     dataset = str(meta.get("dataset", ""))
     world_map, map_dropped = map_from_features(_get(scenario, "map_features", source, ""), source,
@@ -300,6 +309,8 @@ def frames_from_scenario(
         out.append(ImportedFrame(frame, dropped))
     if mismatch and out:
         out[0].dropped["quirk:velocity_mismatch"] += 1
+    if no_ego:
+        out[0].dropped["frame:no_ego"] += no_ego
     return out
 
 

@@ -25,7 +25,7 @@ from scenegen_jax.data.scenarionet_schema import (
     _polyline,
 )
 from scenegen_jax.data.surface import Centerline, normals, outline_lanes, ray_distances
-from scenegen_jax.vector_map import ROAD_EDGE, Lane, RoadLine, VectorMap
+from scenegen_jax.vector_map import ROAD_EDGE, Lane, RoadLine, VectorMap, distinct_points
 
 DEFAULT_HALF_WIDTH_M = surface.DEFAULT_HALF_WIDTH_M
 # A converter's per-point lane `width` (half widths to the left / right boundary) is used only
@@ -65,15 +65,8 @@ def _canonical_int(key: Any) -> int | None:
     return int(s) if re.fullmatch(r"-?[1-9][0-9]*|0", s) else None
 
 
-def _keep_mask(points: np.ndarray) -> np.ndarray:
-    """[P] bool: drop points that repeat the previous one."""
-    if len(points) == 0:
-        return np.zeros(0, bool)
-    return np.concatenate([[True], np.linalg.norm(np.diff(points, axis=0), axis=1) > 1e-9])
-
-
 def _dedupe(points: np.ndarray) -> np.ndarray:
-    return points[_keep_mask(points)]
+    return points[distinct_points(points)]
 
 
 def _ring(points: np.ndarray) -> np.ndarray:
@@ -185,7 +178,7 @@ def _real_lane(
     field = f"map_features[{fid!r}]"
     ftype = feature["type"]
     raw = _polyline(_get(feature, "polyline", source, field), source, f"{field}.polyline")
-    keep = _keep_mask(raw)
+    keep = distinct_points(raw)
     center = raw[keep]
     if len(center) < 2:
         return None

@@ -10,10 +10,13 @@ parallel and skip a bad one without losing the others. `stride` is in steps of t
 from __future__ import annotations
 
 import collections
+import logging
 import os
 from collections.abc import Iterator
 
-from scenegen_jax.frame import Frame
+from scenegen_jax.frame import Frame, drop_beyond_limits
+
+log = logging.getLogger(__name__)
 
 SOURCES = ("av2", "scenarionet", "womd_json")
 DEFAULT_STRIDE = 10  # steps: one frame per second of a 10 Hz log
@@ -49,10 +52,24 @@ def source_files(spec: dict) -> list[str]:
 
 
 def read_file(spec: dict, path: str) -> tuple[list[Frame], collections.Counter]:
-    """Frames of one file of a source, and the rows and map features it dropped, by reason.
+    """Frames of one file of a source, and the rows and map features it dropped, by reason;
+    actors beyond the physical limits of every source (`frame.drop_beyond_limits`) among
+    them.
 
     Raises ValueError / OSError naming the file (and the field) when the file is unusable.
     """
+    frames, drops = _read_source_file(spec, path)
+    kept, beyond = [], collections.Counter()
+    for frame in frames:
+        frame, dropped = drop_beyond_limits(frame)
+        beyond.update(dropped)
+        kept.append(frame)
+    if beyond:
+        log.warning("%s: rows dropped beyond the limits of a road user: %s", path, dict(beyond))
+    return kept, drops + beyond
+
+
+def _read_source_file(spec: dict, path: str) -> tuple[list[Frame], collections.Counter]:
     stride = spec["stride"]
     if spec["kind"] == "av2":
         from scenegen_jax.data.av2 import read_log

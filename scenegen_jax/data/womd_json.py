@@ -29,7 +29,6 @@ driveways join the drivable surface, and lane outlines and the drivable surface 
 from __future__ import annotations
 
 import collections
-import json
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -45,8 +44,15 @@ from scenegen_jax.data.surface import (
     stacked_normals,
 )
 from scenegen_jax.frame import Frame
+from scenegen_jax.jsonfile import read_json
 from scenegen_jax.scene import BICYCLIST, PEDESTRIAN, VEHICLE, wrap_angle
-from scenegen_jax.vector_map import ROAD_EDGE, RoadLine, VectorMap, rotation_matrix
+from scenegen_jax.vector_map import (
+    ROAD_EDGE,
+    RoadLine,
+    VectorMap,
+    distinct_points,
+    rotation_matrix,
+)
 
 CLASS_FROM_TYPE = {"vehicle": VEHICLE, "pedestrian": PEDESTRIAN, "cyclist": BICYCLIST}
 STEP_S = 0.1  # WOMD's 10 Hz
@@ -99,14 +105,30 @@ def _xy(value: Any, n: int | None, source: str, field: str) -> np.ndarray:
     return out
 
 
-def _vector(value: Any, n: int, source: str, field: str, dtype=float) -> np.ndarray:
+def _vector(value: Any, n: int, source: str, field: str) -> np.ndarray:
     try:
-        out = np.asarray(value, dtype)
+        out = np.asarray(value, float)
     except (TypeError, ValueError, OverflowError) as e:
         raise _err(source, field, f"not a numeric list ({e})") from e
     if out.shape != (n,):
         raise _err(source, field, f"expected {n} values, got shape {out.shape}")
     return out
+
+
+def _is_flag(value: Any) -> bool:
+    return isinstance(value, bool) or (isinstance(value, int) and value in (0, 1))
+
+
+def _flags(value: Any, n: int | None, source: str, field: str) -> np.ndarray:
+    """bool [n] from a list of JSON booleans (0 and 1 allowed); anything else is named."""
+    if not isinstance(value, list):
+        raise _err(source, field, f"expected a list of booleans, got {type(value).__name__}")
+    bad = [v for v in value if not _is_flag(v)]
+    if bad:
+        raise _err(source, field, f"expected booleans, got {bad[0]!r}")
+    if n is not None and len(value) != n:
+        raise _err(source, field, f"expected {n} values, got {len(value)}")
+    return np.asarray(value, bool)
 
 
 def _scalar(obj: Mapping, key: str, source: str, field: str) -> float:
@@ -143,13 +165,13 @@ def read_tracks(objects: Any, source: str) -> tuple[Tracks, collections.Counter]
     first = objects[0]
     if not isinstance(first, Mapping) or "valid" not in first:
         raise _err(source, "objects[0].valid", "missing")
-    n_steps = len(first["valid"])
+    n_steps = len(_flags(first["valid"], None, source, "objects[0].valid"))
     kept = collections.defaultdict(list)
     for i, obj in enumerate(objects):
         field = f"objects[{i}]"
         if not isinstance(obj, Mapping):
             raise _err(source, field, f"expected a dict, got {type(obj).__name__}")
-        valid = _vector(obj.get("valid"), n_steps, source, f"{field}.valid", bool)
+        valid = _flags(obj.get("valid"), n_steps, source, f"{field}.valid")
         otype = obj.get("type")
         if not isinstance(otype, str):
             raise _err(source, f"{field}.type", f"expected a string, got {otype!r}")
@@ -269,8 +291,7 @@ def read_map(roads: Any, source: str) -> tuple[VectorMap, collections.Counter]:
         points = _xy(road.get("geometry"), None, source, f"{field}.geometry")
         if not np.all(np.isfinite(points)):
             raise _err(source, f"{field}.geometry", "NaN or inf coordinate")
-        keep = np.concatenate([[True], np.linalg.norm(np.diff(points, axis=0), axis=1) > 1e-6])
-        points = points[keep]
+        points = points[distinct_points(points, 1e-6)]
         min_points = 3 if rtype in ("crosswalk", "driveway") else 2
         if len(points) < min_points:
             dropped[f"map:degenerate_{rtype}"] += 1
@@ -328,7 +349,8 @@ def _se2(x: float, y: float, theta: float) -> np.ndarray:
 def frames_from_scenario(
     data: Any, source: str, stride: int
 ) -> tuple[list[Frame], collections.Counter]:
-    """Frames at steps 0, stride, 2 stride, ... where the ego is valid, and the drop counts.
+    """Frames at steps 0, stride, 2 stride, ... where the ego is valid, and the drop counts
+    (the steps where it is not: "frame:no_ego"; none at all raises ValueError).
 
     Rows valid at a frame's step are either actors of the frame or counted drops (unknown
     types, NaN/inf, non-positive box sizes of vehicles and cyclists). NaN/inf in the ego's
@@ -353,6 +375,7 @@ def frames_from_scenario(
     n_steps = tracks.valid.shape[1]
     for t in range(0, n_steps, stride):
         if not tracks.valid[sdc, t]:
+            dropped["frame:no_ego"] += 1
             continue
         for name in ("position", "velocity", "heading"):
             if not np.all(np.isfinite(getattr(tracks, name)[sdc, t])):
@@ -390,6 +413,9 @@ def frames_from_scenario(
                 city_from_ego=_se2(x0, y0, h0),
             )
         )
+    if not frames:
+        raise _err(source, f"{sdc_field}.valid",
+                   f"the SDC is valid at none of the steps 0, {stride}, ... of {n_steps}")
     dropped = collections.Counter({k: v for k, v in dropped.items() if v})
     return frames, dropped
 
@@ -407,9 +433,4 @@ def scenario_files(root: str | os.PathLike) -> list[Path]:
 
 def read_file(path: str | os.PathLike, stride: int) -> tuple[list[Frame], collections.Counter]:
     """Frames and drop counts of one JSON scenario file; errors name the file and field."""
-    try:
-        with open(path, encoding="utf-8") as f:
-            data = json.load(f)
-    except ValueError as e:  # JSONDecodeError, UnicodeDecodeError, an over-long integer
-        raise ValueError(f"{path}: not valid JSON ({e})") from e
-    return frames_from_scenario(data, str(path), stride)
+    return frames_from_scenario(read_json(path), str(path), stride)

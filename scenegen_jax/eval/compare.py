@@ -9,6 +9,8 @@ of consecutive scenes (frames of one log are correlated) with replacement.
 
 from __future__ import annotations
 
+import zipfile
+
 import numpy as np
 
 from scenegen_jax.distributions import TERMS
@@ -19,12 +21,28 @@ FIELDS = (*TERMS, "step_valid", "step_cls")
 
 
 def load_scores(path: str) -> dict[str, np.ndarray]:
-    """The arrays of a `--actors-out` file (never unpickles); errors name the missing field."""
-    with np.load(path, allow_pickle=False) as f:
-        missing = [k for k in FIELDS if k not in f.files]
-        if missing:
-            raise ValueError(f"{path}: missing field {missing[0]!r} (not a --actors-out file?)")
-        return {k: f[k] for k in FIELDS}
+    """The arrays of a `--actors-out` file (never unpickles); errors name the file and field:
+    a file that is no .npz of plain arrays, a missing field, fields of other shapes than
+    `step_valid`, or an NLL that is NaN or inf at an actor's step."""
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            files = set(f.files)
+            scores = {k: f[k] for k in FIELDS if k in files}
+    except (ValueError, zipfile.BadZipFile) as e:  # pickled or object arrays, not a zip
+        raise ValueError(f"{path}: not a `score --actors-out` .npz ({e})") from e
+    missing = [k for k in FIELDS if k not in scores]
+    if missing:
+        raise ValueError(f"{path}: missing field {missing[0]!r} (not a --actors-out file?)")
+    shape = scores["step_valid"].shape
+    for k in FIELDS:
+        if scores[k].shape != shape:
+            raise ValueError(f"{path}: field {k!r}: shape {scores[k].shape}, step_valid's "
+                             f"is {shape}")
+    actor = actor_steps(scores)
+    for k in TERMS:
+        if not np.all(np.isfinite(scores[k][actor])):
+            raise ValueError(f"{path}: field {k!r}: NaN or inf at an actor's step")
+    return scores
 
 
 def actor_sums(scores: dict, term: str, cls: int | None) -> tuple[np.ndarray, np.ndarray]:
@@ -60,11 +78,14 @@ def paired_difference(
     """NLL per actor of A minus B, pairs averaged scene by scene, with a 95% interval.
 
     Returns dict(diff, low, high, actors): the point estimate, the 2.5% and 97.5% percentiles
-    of `samples` block-bootstrap resamples (blocks of `block` consecutive scenes), and the
-    number of actors counted.
+    of `samples` block-bootstrap resamples (blocks of `block` consecutive scenes; None when
+    the scenes make a single block), and the number of actors counted.
     """
     if len(a) != len(b) or not a:
         raise ValueError(f"need as many A runs as B runs, at least one (got {len(a)}, {len(b)})")
+    for name, value, least in (("block", block, 1), ("samples", samples, 1), ("seed", seed, 0)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < least:
+            raise ValueError(f"--{name}: expected an integer >= {least}, got {value!r}")
     d = np.mean(
         [
             actor_sums(x, term, cls)[0] - actor_sums(y, term, cls)[0]
@@ -76,6 +97,9 @@ def paired_difference(
     if n.sum() == 0:
         return {"diff": None, "low": None, "high": None, "actors": 0}
     starts = np.arange(0, len(d), block)
+    if len(starts) < 2:  # resampling one block always gives the estimate itself
+        return {"diff": float(d.sum() / n.sum()), "low": None, "high": None,
+                "actors": int(n.sum())}
     d_blocks = np.add.reduceat(d, starts)
     n_blocks = np.add.reduceat(n, starts)
     pick = np.random.default_rng(seed).integers(0, len(starts), (samples, len(starts)))

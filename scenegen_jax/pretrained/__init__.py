@@ -30,6 +30,7 @@ from flax import serialization
 from flax.traverse_util import flatten_dict
 
 from scenegen_jax.config import Config
+from scenegen_jax.jsonfile import read_json
 from scenegen_jax.model.network import init_params
 from scenegen_jax.sampling.rollout import SamplerOptions
 
@@ -123,13 +124,9 @@ def load_pretrained(name_or_dir: str) -> tuple[Config, dict, dict]:
     """
     directory = resolve(name_or_dir)
     paths = {k: os.path.join(directory, k) for k in (CONFIG_FILE, PARAMS_FILE, MANIFEST_FILE)}
-    try:
-        with open(paths[MANIFEST_FILE]) as f:
-            manifest = json.load(f)
-        with open(paths[CONFIG_FILE]) as f:
-            cfg = Config.from_json(f.read(), paths[CONFIG_FILE])
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{paths[MANIFEST_FILE]}: not valid JSON ({e})") from e
+    manifest = read_json(paths[MANIFEST_FILE])
+    with open(paths[CONFIG_FILE]) as f:
+        cfg = Config.from_json(f.read(), paths[CONFIG_FILE])
     check_sampler(manifest.get("sampler", {}), paths[MANIFEST_FILE])
     with open(paths[PARAMS_FILE], "rb") as f:
         data = f.read()
