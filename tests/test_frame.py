@@ -37,7 +37,8 @@ def test_rows_beyond_the_limits_are_dropped_and_counted():
 
 
 def test_an_ego_beyond_the_limits_is_named():
-    with pytest.raises(ValueError, match=r"^f\.json: scene log/7: ego width/length: \[2\.0, 31\.0\]"):
+    with pytest.raises(ValueError,
+                       match=r"^f\.json: scene log/7: ego width/length: \[2\.0, 31\.0\]"):
         drop_beyond_limits(_frame([], np.zeros((0, 2)), ego_size=(2.0, 31.0)))
     with pytest.raises(ValueError, match=r"^f\.json: scene log/7: ego velocity: speed inf m/s"):
         drop_beyond_limits(_frame([], np.zeros((0, 2)), ego_velocity=(np.inf, 0.0)))
