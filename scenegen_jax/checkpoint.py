@@ -141,8 +141,10 @@ class Checkpointer:
             return None
         try:
             want = read_json(path)
-        except (OSError, ValueError) as e:
+        except OSError as e:
             raise DamagedCheckpoint(f"{path}: unreadable checksums ({e})") from e
+        except ValueError as e:  # names the file
+            raise DamagedCheckpoint(f"unreadable checksums: {e}") from e
         if not isinstance(want, dict):
             raise DamagedCheckpoint(f"{path}: checksums are not a JSON object")
         return want

@@ -229,7 +229,7 @@ class Config:
         return json.dumps(dataclasses.asdict(self), indent=2)
 
     @classmethod
-    def from_json(cls, text: str, source: str = "config") -> Config:
+    def from_json(cls, text: str | bytes, source: str = "config") -> Config:
         """The config of `to_json` text; errors name `source` (a file) and the field."""
         d = parse_json(text, source)
         if not isinstance(d, dict):
@@ -387,7 +387,7 @@ def get_config(name: str, /, **overrides: Any) -> Config:
     return apply_overrides(PRESETS[name], **overrides)
 
 
-def apply_overrides(base: Config, **overrides: Any) -> Config:
+def apply_overrides(base: Config, /, **overrides: Any) -> Config:
     """`base` with fields replaced; string values are parsed to the field's type."""
     fields = {f.name for f in dataclasses.fields(Config)}
     parsed: dict[str, Any] = {}

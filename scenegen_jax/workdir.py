@@ -1,5 +1,6 @@
-"""A training workdir as the other commands read it: `config.json` and the parameters of a
-checkpoint (`load_params`), without the optimizer state or anything of `train/`."""
+"""A training workdir as the other commands read it: `config.json` and a checkpoint
+(`restore`), of which scoring, sampling and export read only the parameters (`load_params`),
+without the optimizer state or anything of `train/`."""
 
 from __future__ import annotations
 
@@ -22,7 +23,7 @@ def load_workdir_config(workdir: str) -> Config:
     path = os.path.join(workdir, CONFIG_FILE)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"{path}: not a training workdir (no {CONFIG_FILE})")
-    with open(path) as f:
+    with open(path, "rb") as f:
         return Config.from_json(f.read(), path)
 
 

@@ -83,12 +83,12 @@ def womd_root() -> str:
 @pytest.fixture(scope="session")
 def all_frames(data_root):
     """Every frame of the four logs, by split, with the drop counters."""
-    from scenegen_jax.data.av2 import read_split
+    from scenegen_jax.data.sources import read_frames, source_spec
 
     out = {}
     for split in ("train", "val"):
         drops = collections.Counter()
-        out[split] = (list(read_split(data_root, split, drops)), drops)
+        out[split] = (list(read_frames(source_spec("av2", data_root, split, 1), drops)), drops)
     return out
 
 
@@ -96,12 +96,13 @@ def all_frames(data_root):
 def tiny_train_cache(tmp_path_factory, data_root):
     """A tiny-config cache of every 8th train frame (written once per session)."""
     from scenegen_jax.config import get_config
-    from scenegen_jax.data.av2 import read_split
     from scenegen_jax.data.cache import load_cache, write_cache
+    from scenegen_jax.data.sources import read_frames, source_spec
 
     out = str(tmp_path_factory.mktemp("cache_tiny"))
     drops = collections.Counter()
-    write_cache(read_split(data_root, "train", drops, stride=8), out, get_config("tiny"), drops)
+    frames = read_frames(source_spec("av2", data_root, "train", 8), drops)
+    write_cache(frames, out, get_config("tiny"), drops)
     return load_cache(out)
 
 

@@ -12,8 +12,8 @@ import pytest
 
 from scenegen_jax import cli
 from scenegen_jax.config import get_config
-from scenegen_jax.data.av2 import read_split
 from scenegen_jax.data.cache import write_cache
+from scenegen_jax.data.sources import read_frames, source_spec
 
 
 @pytest.fixture(scope="module")
@@ -21,7 +21,8 @@ def cache_dir(tmp_path_factory, data_root) -> str:
     """A tiny-config cache of a few real val frames."""
     out = str(tmp_path_factory.mktemp("cli_errors_cache"))
     drops = collections.Counter()
-    write_cache(read_split(data_root, "val", drops, stride=40), out, get_config("tiny"), drops)
+    frames = read_frames(source_spec("av2", data_root, "val", 40), drops)
+    write_cache(frames, out, get_config("tiny"), drops)
     return out
 
 

@@ -111,6 +111,10 @@ def test_damaged_files_and_bad_options_are_named(tmp_path):
     np.savez(tmp_path / "objects.npz", **{**good, "class": np.array([None, 1], object)})
     with pytest.raises(ValueError, match="objects.npz: not a `score --actors-out` .npz"):
         load_scores(str(tmp_path / "objects.npz"))
+    np.save(tmp_path / "one.npy", np.zeros(3))
+    with pytest.raises(ValueError, match=r"one.npy: not a `score --actors-out` .npz \(one "
+                       r"float64 array of shape \(3,\)\)"):
+        load_scores(str(tmp_path / "one.npy"))
     (tmp_path / "scores.csv").write_text("scene,nll\n0,1.0\n")
     with pytest.raises(ValueError, match="scores.csv: not a `score --actors-out` .npz"):
         load_scores(str(tmp_path / "scores.csv"))

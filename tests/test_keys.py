@@ -15,8 +15,8 @@ import pytest
 from scenegen_jax import cli
 from scenegen_jax.checkpoint import Checkpointer
 from scenegen_jax.config import get_config
-from scenegen_jax.data.av2 import read_split
 from scenegen_jax.data.cache import load_cache, write_cache
+from scenegen_jax.data.sources import read_frames, source_spec
 from scenegen_jax.eval import nll
 from scenegen_jax.eval.evaluate import real_scenes, sample_scenegen
 from scenegen_jax.sampling import sample_scenes
@@ -34,7 +34,8 @@ def setup(tmp_path_factory, data_root):
     """A cache of real val frames and a workdir whose (untrained) model makes busy scenes."""
     cache_dir = str(tmp_path_factory.mktemp("keys_cache"))
     drops = collections.Counter()
-    write_cache(read_split(data_root, "val", drops, stride=40), cache_dir, TINY, drops)
+    frames = read_frames(source_spec("av2", data_root, "val", 40), drops)
+    write_cache(frames, cache_dir, TINY, drops)
     state = init_state(TINY)
     params = jax.tree.map(np.asarray, state.params)
     params["class_mlp2"]["bias"] = np.array([2.0, 0.5, 0.5, -2.0], np.float32)  # few stops

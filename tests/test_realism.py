@@ -106,12 +106,13 @@ def test_real_argoverse_scenes_are_on_the_road_along_their_lanes(data_root, tmp_
     """The real val log, as a user's reference: every vehicle within 40 m stands on the
     drivable area, and most vehicles on a lane point along it (93 % at the `cpu` grid);
     annotated boxes do not overlap."""
-    from scenegen_jax.data.av2 import read_split
     from scenegen_jax.data.cache import cached_scene, load_cache, write_cache
+    from scenegen_jax.data.sources import read_frames, source_spec
     from scenegen_jax.eval.evaluate import real_scenes
 
     cfg = get_config("tiny")
-    write_cache(read_split(data_root, "val", collections.Counter(), stride=20), str(tmp_path),
+    frames = read_frames(source_spec("av2", data_root, "val", 20), collections.Counter())
+    write_cache(frames, str(tmp_path),
                 cfg, collections.Counter())
     cache = load_cache(str(tmp_path))
     indices = np.arange(len(cache))

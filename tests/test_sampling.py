@@ -363,7 +363,7 @@ def test_fake_model_insertion_order_classes_and_stop():
     np.testing.assert_array_equal(a.cls[:, :3],
                                   np.tile([VEHICLE, PEDESTRIAN, BICYCLIST], (FAKE_NUM, 1)))
     np.testing.assert_array_equal(bins_of(a)[:, :3], np.tile([70, 300, 301], (FAKE_NUM, 1)))
-    np.testing.assert_array_equal(out.stop_reason, StopReason.TOKEN)
+    np.testing.assert_array_equal(out.stop_reason, StopReason.STOP_TOKEN)
     np.testing.assert_array_equal(out.rejected, 0)
     # Nothing is written after the stop; attributes as the fake heads dictate.
     assert np.all(a.position[:, 3:] == 0) and np.all(a.size[:, 3:] == 0)
@@ -464,7 +464,7 @@ def test_fake_model_class_caps_and_given_actors():
     out = run_fake(params, caps=np.array([2, 0, 3]))
     np.testing.assert_array_equal(out.actors.cls[:, :5], np.tile([0, 0, 2, 2, 2], (FAKE_NUM, 1)))
     np.testing.assert_array_equal(out.actors.valid.sum(-1), 5)
-    np.testing.assert_array_equal(out.stop_reason, StopReason.TOKEN)  # every class at its cap
+    np.testing.assert_array_equal(out.stop_reason, StopReason.STOP_TOKEN)  # every class at its cap
 
     # Given actors: inserted first, unchanged; they count towards the caps; sampling goes on
     # after the last given bin.
@@ -494,12 +494,12 @@ def test_fake_model_class_caps_and_given_actors():
 @pytest.fixture(scope="module")
 def val_cache(tmp_path_factory, data_root):
     """A tiny-config cache of every 20th validation frame (8 scenes)."""
-    from scenegen_jax.data.av2 import read_split
     from scenegen_jax.data.cache import load_cache, write_cache
+    from scenegen_jax.data.sources import read_frames, source_spec
 
     out = str(tmp_path_factory.mktemp("cache_val_tiny"))
     drops = collections.Counter()
-    write_cache(read_split(data_root, "val", drops, stride=20), out, TINY, drops)
+    write_cache(read_frames(source_spec("av2", data_root, "val", 20), drops), out, TINY, drops)
     return load_cache(out)
 
 

@@ -821,6 +821,27 @@ def test_stride_skips_steps_where_the_sdc_is_invalid_and_checks_arguments():
         sn.frames_from_scenario(s, "s.pkl", stride=0)
 
 
+def test_a_pickle_nested_too_deeply_is_a_counted_bad_file(tmp_path):
+    """A track id that is a tuple nested 100,000 deep: the restricted unpickler builds it
+    without recursion, but reading the ids would end `prepare` with a RecursionError."""
+    from scenegen_jax.config import get_config
+    from scenegen_jax.data.prepare import prepare
+    from scenegen_jax.data.sources import source_spec
+
+    sn.write_scenario(fx.waymo().scenario, tmp_path / "sd_good.pkl")
+    deep = fx.waymo().scenario
+    deep["tracks"]["PLACEHOLDER"] = next(iter(deep["tracks"].values()))
+    raw = pickle.dumps(deep, protocol=2)  # no frames: the placeholder can be swapped
+    name = b"X" + (11).to_bytes(4, "little") + b"PLACEHOLDER"  # BINUNICODE
+    assert raw.count(name) == 1
+    (tmp_path / "sd_deep.pkl").write_bytes(raw.replace(name, b")" + b"\x85" * 100_000))
+    spec = source_spec("scenarionet", str(tmp_path), None, 10)
+    summary, _ = prepare(spec, str(tmp_path / "cache"), get_config("tiny"), workers=1)
+    assert summary.files == 2 and summary.bad_files == {"RecursionError": 1}
+    assert summary.bad_file_list[0]["file"].endswith("sd_deep.pkl")
+    assert summary.scenes == 10  # the good file's steps 0, 10, ..., 90
+
+
 def test_read_scenarionet_with_stride(tmp_path):
     for name in ("waymo", "nuplan"):
         sn.write_scenario(fx.BUILDERS[name]().scenario, tmp_path / f"sd_{name}.pkl")

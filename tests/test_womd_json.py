@@ -376,3 +376,22 @@ def test_strict_names_the_file_of_any_reader_error(monkeypatch):
     assert P.encode_file(spec, "f.json", get_config("tiny")).error == "KeyError: 'position'"
     with pytest.raises(ValueError, match=r"^f\.json: KeyError: 'position'$"):
         P.encode_file(spec, "f.json", get_config("tiny"), strict=True)
+
+
+def test_every_source_is_held_to_the_road_user_limits(tmp_path):
+    """`sources.read_file` (what `prepare` reads with): a 35 m box and a 150 m/s actor are
+    counted drops; a 150 m/s ego makes the file a bad one, named."""
+    from scenegen_jax.data.sources import read_file
+
+    data = _scene(False, sdc=0)
+    data["objects"][1]["length"] = 35.0
+    data["objects"][2]["velocity"] = [{"x": 150.0, "y": 0.0}] * 21
+    (tmp_path / "limits.json").write_text(json.dumps(data))
+    spec = source_spec("womd_json", str(tmp_path), None, 10)
+    frames, drops = read_file(spec, str(tmp_path / "limits.json"))
+    assert (drops["invalid:size"], drops["invalid:speed"]) == (3, 3)  # one each per frame
+    assert all(len(f.cls) == 2 for f in frames[:2]) and len(frames[2].cls) == 1
+    data["objects"][0]["velocity"] = [{"x": 150.0, "y": 0.0}] * 21
+    (tmp_path / "limits.json").write_text(json.dumps(data))
+    with pytest.raises(ValueError, match=r"limits\.json: scene limits/0: ego velocity: speed 150"):
+        read_file(spec, str(tmp_path / "limits.json"))

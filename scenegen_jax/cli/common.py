@@ -16,7 +16,8 @@ def overrides(pairs: list[str]) -> dict[str, str]:
             raise ValueError(f"--set {pair!r}: must look like FIELD=VALUE")
         k, v = pair.split("=", 1)
         if k == "name":
-            raise ValueError(f"--set {pair!r}: the preset's name is chosen with --config")
+            raise ValueError(f"--set {pair!r}: `name` labels the preset (train and prepare "
+                             "choose it with --config); it is not a setting")
         out[k] = v
     return out
 

@@ -72,7 +72,7 @@ def conditioning(args, cfg: Config, cache) -> tuple[list[int], list]:
     given = []
     if args.given:  # scene k is sampled beside the ego of cache scene indices[k mod len]
         scene_egos = cache.ego_size[[indices[k % len(indices)] for k in range(args.num)]]
-        with open(args.given) as f:
+        with open(args.given, "rb") as f:  # bytes: bad UTF-8 is named with its line
             given = given_from_lines(f, args.given, cfg, scene_egos, args.allow_overlap)
     return indices, given
 

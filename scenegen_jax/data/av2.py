@@ -365,11 +365,3 @@ def _group(keys: np.ndarray):
     bounds = np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1], True])
     for a, b in zip(bounds[:-1], bounds[1:], strict=False):
         yield sorted_keys[a], order[a:b]
-
-
-def read_split(root: str, split: str, drops: DropCounter, stride: int = 1) -> Iterator[Frame]:
-    """Frames of every log of a split (every `stride`-th frame of each log)."""
-    for log_dir in list_logs(root, split):
-        for i, frame in enumerate(read_log(log_dir, drops)):
-            if i % stride == 0:
-                yield frame

@@ -29,9 +29,9 @@ from scenegen_jax.data.sources import read_file, source_files
 
 log = logging.getLogger(__name__)
 # What a damaged or foreign file raises in our readers (ValueError includes JSON errors;
-# RecursionError: a pickle nested too deeply).
+# RecursionError: a pickle nested too deeply; the others: a layout no reader check foresaw).
 FILE_ERRORS = (ValueError, OSError, EOFError, pickle.UnpicklingError, KeyError, TypeError,
-               RecursionError)
+               IndexError, AttributeError, RecursionError)
 
 
 class FileResult(NamedTuple):
@@ -49,7 +49,7 @@ def encode_file(spec: dict, path: str, cfg: Config, strict: bool = False) -> Fil
         error = f"{type(e).__name__}: {e}"
         if not strict:
             return FileResult(path, [], collections.Counter(), error)
-        if isinstance(e, (ValueError, OSError)):
+        if isinstance(e, OSError) or (isinstance(e, ValueError) and path in str(e)):
             raise
         raise ValueError(f"{path}: {error}") from e  # the CLI's bad-input error, naming the file
     return FileResult(path, [encode_frame(f, cfg) for f in frames], drops, None)

@@ -99,7 +99,7 @@ from scenegen_jax.data.scenarionet_tracks import (
     scenario_sample_rate_hz,
     velocity_mismatch,
 )
-from scenegen_jax.frame import Frame
+from scenegen_jax.frame import Frame, drop_beyond_limits
 from scenegen_jax.scene import PEDESTRIAN, VEHICLE, wrap_angle
 from scenegen_jax.vector_map import rotation_matrix
 
@@ -195,8 +195,8 @@ def frames_from_scenario(
     Raises:
       ValueError naming `source` and the field for missing keys (tracks, the SDC, map
       features), bad shapes, an SDC that is a pedestrian or cyclist, or is invalid,
-      non-finite or without a positive box size at a requested step (with `stride`: at every
-      step of the stride), or NaN/inf map geometry.
+      non-finite or without a positive box size at a requested step, with `stride` an SDC
+      valid at none of the stride's steps, or NaN/inf map geometry.
     """
     if not isinstance(scenario, Mapping):
         raise _err(source, "scenario", f"expected a dict, got {type(scenario).__name__}")
@@ -224,7 +224,7 @@ def frames_from_scenario(
     steps = _steps(time_index, all_steps, stride, sdc, meta, length, source)
     # Steps of the stride at which the SDC is not valid give no frame: counted.
     no_ego = len(range(0, length, stride)) - len(steps) if stride is not None else 0
-    if no_ego and not steps:
+    if stride is not None and not steps:
         raise _err(source, f"{sdc_field}.state.valid",
                    f"the SDC (ego) is valid at none of the steps 0, {stride}, ... of {length}")
 
@@ -345,13 +345,11 @@ def read_scenarionet(
     stride: int | None = None,
     map_radius_m: float | None = None,
 ) -> Iterator[ImportedFrame]:
-    """(Frame, dropped Counter) for every scenario file under `root`; see frames_from_scenario."""
+    """(Frame, dropped Counter) for every scenario file under `root` (`frames_from_scenario`),
+    held to the road-user limits of every source (`frame.drop_beyond_limits`)."""
     for path in scenario_files(root):
-        yield from frames_from_scenario(
-            read_scenario(path),
-            str(path),
-            time_index,
-            all_steps=all_steps,
-            stride=stride,
-            map_radius_m=map_radius_m,
-        )
+        for item in frames_from_scenario(read_scenario(path), str(path), time_index,
+                                         all_steps=all_steps, stride=stride,
+                                         map_radius_m=map_radius_m):
+            frame, beyond = drop_beyond_limits(item.frame)
+            yield ImportedFrame(frame, item.dropped + beyond)

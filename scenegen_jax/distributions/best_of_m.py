@@ -8,6 +8,8 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from scenegen_jax.scene import tree_take
+
 
 def best_of_m(
     keys: jax.Array,
@@ -55,4 +57,4 @@ def best_of_m(
         scores = adjust(draws, scores)
     scores = jnp.where(jnp.isnan(scores), -jnp.inf, scores)
     chosen = jnp.arange(r) * m + jnp.argmax(scores, axis=1)
-    return jax.tree.map(lambda x: x[chosen], draws)
+    return tree_take(draws, chosen)

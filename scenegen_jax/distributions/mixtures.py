@@ -17,7 +17,7 @@ from jax.scipy import special
 
 from scenegen_jax.distributions import params as P
 from scenegen_jax.distributions.categorical import gumbel_argmax, uniforms
-from scenegen_jax.scene import wrap_angle
+from scenegen_jax.scene import tree_take, wrap_angle
 
 LOG_2PI = math.log(2.0 * math.pi)
 # Samples of log width, log length and log speed are clipped to this range (log m, log m/s).
@@ -94,7 +94,7 @@ def _pick(u: jnp.ndarray, logits: jnp.ndarray, tree):
     """Draws a component index from `logits` [K] with uniforms `u` [K] (`gumbel_argmax`) and
     gathers it from every leaf [K, ...]."""
     k = gumbel_argmax(u, logits)
-    return k, jax.tree_util.tree_map(lambda x: x[k], tree)
+    return k, tree_take(tree, k)
 
 
 # ----------------------------------------------------------------------------- box

@@ -24,12 +24,15 @@ def load_scores(path: str) -> dict[str, np.ndarray]:
     """The arrays of a `--actors-out` file (never unpickles); errors name the file and field:
     a file that is no .npz of plain arrays, a missing field, fields of other shapes than
     `step_valid`, or an NLL that is NaN or inf at an actor's step."""
+    not_npz = f"{path}: not a `score --actors-out` .npz"
     try:
-        with np.load(path, allow_pickle=False) as f:
-            files = set(f.files)
-            scores = {k: f[k] for k in FIELDS if k in files}
-    except (ValueError, zipfile.BadZipFile) as e:  # pickled or object arrays, not a zip
-        raise ValueError(f"{path}: not a `score --actors-out` .npz ({e})") from e
+        loaded = np.load(path, allow_pickle=False)
+        if not isinstance(loaded, np.lib.npyio.NpzFile):  # a .npy: one array
+            raise TypeError(f"one {loaded.dtype} array of shape {loaded.shape}")
+        with loaded as f:  # object arrays fail here, as they are read
+            scores = {k: f[k] for k in FIELDS if k in f.files}
+    except (ValueError, TypeError, zipfile.BadZipFile) as e:  # pickled data, not a zip
+        raise ValueError(f"{not_npz} ({e})") from e
     missing = [k for k in FIELDS if k not in scores]
     if missing:
         raise ValueError(f"{path}: missing field {missing[0]!r} (not a --actors-out file?)")
@@ -84,7 +87,7 @@ def paired_difference(
     if len(a) != len(b) or not a:
         raise ValueError(f"need as many A runs as B runs, at least one (got {len(a)}, {len(b)})")
     for name, value, least in (("block", block, 1), ("samples", samples, 1), ("seed", seed, 0)):
-        if isinstance(value, bool) or not isinstance(value, int) or value < least:
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
             raise ValueError(f"--{name}: expected an integer >= {least}, got {value!r}")
     d = np.mean(
         [

@@ -125,7 +125,7 @@ def load_pretrained(name_or_dir: str) -> tuple[Config, dict, dict]:
     directory = resolve(name_or_dir)
     paths = {k: os.path.join(directory, k) for k in (CONFIG_FILE, PARAMS_FILE, MANIFEST_FILE)}
     manifest = read_json(paths[MANIFEST_FILE])
-    with open(paths[CONFIG_FILE]) as f:
+    with open(paths[CONFIG_FILE], "rb") as f:
         cfg = Config.from_json(f.read(), paths[CONFIG_FILE])
     check_sampler(manifest.get("sampler", {}), paths[MANIFEST_FILE])
     with open(paths[PARAMS_FILE], "rb") as f:

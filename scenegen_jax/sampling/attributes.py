@@ -17,10 +17,13 @@ from scenegen_jax.distributions import (
     sample_velocity,
     velocity_proposal_score,
 )
+from scenegen_jax.raster.actors import DEFAULT_MAX_BOX_M
 from scenegen_jax.scene import PEDESTRIAN, wrap_angle
 
+# Sampled boxes are clamped to what the actor raster draws whole, speeds to 50 m/s (tighter
+# than the limits data are read with, `frame.MAX_SIZE_M` and `frame.MAX_SPEED_MPS`).
 MIN_SIZE_M = 0.2
-MAX_SIZE_M = 20.0
+MAX_SIZE_M = DEFAULT_MAX_BOX_M
 MAX_SPEED_MPS = 50.0
 
 

@@ -10,7 +10,6 @@ direction as heading; on input their width, length and heading may be omitted.
 
 from __future__ import annotations
 
-import json
 import math
 import numbers
 from collections.abc import Iterable, Mapping, Sequence
@@ -21,6 +20,7 @@ import numpy as np
 from scenegen_jax.config import Config
 from scenegen_jax.frame import Frame
 from scenegen_jax.geometry import boxes_overlap
+from scenegen_jax.jsonfile import parse_json
 from scenegen_jax.scene import (
     CLASS_NAMES,
     PEDESTRIAN,
@@ -218,7 +218,7 @@ def _numpy(actors: Actors) -> Actors:
                     ("cls", "position", "size", "heading", "velocity", "valid")))
 
 
-def given_from_lines(lines: Iterable[str], path: str, cfg: Config, scene_ego_sizes,
+def given_from_lines(lines: Iterable[str | bytes], path: str, cfg: Config, scene_ego_sizes,
                      allow_overlap: bool = False) -> list:
     """Given actors (numpy Actors [N]) of each non-blank line of a `sample --given` file:
     `lines` are its lines, `path` its name for the errors.
@@ -233,10 +233,7 @@ def given_from_lines(lines: Iterable[str], path: str, cfg: Config, scene_ego_siz
         if not line.strip():
             continue
         where = f"{path}:{line_no}"
-        try:
-            row = json.loads(line)
-        except json.JSONDecodeError as e:
-            raise ValueError(f"{where}: not JSON ({e})") from e
+        row = parse_json(line, where)
         if not isinstance(row, dict) or "actors" not in row:
             raise ValueError(f'{where}: actors: missing (expected {{"actors": [...]}})')
         rows.append((where, row["actors"]))

@@ -132,14 +132,14 @@ class StopReason(enum.IntEnum):
     """Why a sampled scene ended (`Sample.stop_reason`; not the stop token's class id,
     `scene.STOP`)."""
 
-    TOKEN = 0  # the model drew the stop token
+    STOP_TOKEN = 0  # the model drew the stop token
     FULL = 1  # every actor slot is filled
     NO_BIN = 2  # the ordering mask and the location logits left no bin
     COLLISION = 3  # every candidate of every round overlapped an earlier actor
 
 
-# Their names in sampled scenes' records, indexed by `StopReason`.
-STOP_REASONS = ("stop_token", "full", "no_bin", "collision")
+# Their names in sampled scenes' records, indexed by `StopReason`: "stop_token", ...
+STOP_REASONS = tuple(reason.name.lower() for reason in StopReason)
 
 
 @struct.dataclass
@@ -377,7 +377,7 @@ def rollout(
         done = jnp.logical_not(placed) | (count >= n)
         reason = jnp.select(
             [placed, is_stop, jnp.logical_not(any_valid)],
-            [StopReason.FULL, StopReason.TOKEN, StopReason.NO_BIN], StopReason.COLLISION
+            [StopReason.FULL, StopReason.STOP_TOKEN, StopReason.NO_BIN], StopReason.COLLISION
         ).astype(jnp.int32)
         hit = steps == t
         probs = jnp.where(is_stop, 0.0, jnp.exp(log_probs))

@@ -22,6 +22,7 @@ from scenegen_jax.config import Config
 from scenegen_jax.data.cache import actors_in_region
 from scenegen_jax.data.union import CacheUnion, load_union
 from scenegen_jax.distributions import TERMS
+from scenegen_jax.jsonfile import read_json
 from scenegen_jax.likelihood.batch import check_batch, gather_batch, local_rows, to_device
 from scenegen_jax.likelihood.terms import VEHICLE_TERMS
 from scenegen_jax.model.network import ATTRIBUTES, MAP_CHANNEL_AXIS
@@ -98,8 +99,7 @@ def save_or_check_data(workdir: str, union: CacheUnion, weights=None) -> dict:
     if not os.path.exists(path):
         _write_atomic(path, json.dumps(record, indent=1))
         return record
-    with open(path) as f:
-        saved = json.load(f)
+    saved = read_json(path)
     hint = "use the same --data list and --weights, or a new --workdir"
     was = [c["path"] for c in saved["caches"]]
     now = [c["path"] for c in record["caches"]]
