@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
 import sys
 
@@ -20,6 +21,8 @@ def cmd_prepare(args) -> None:
     cfg = get_config(args.config, **overrides(args.set))
     spec = source_spec(args.source, args.root, args.split, args.stride)
     shard = parse_shard(args.shard) if args.shard else None
+    if os.path.isfile(os.path.join(args.out, "meta.json")):
+        logging.getLogger("scenegen").warning("%s: a cache is there; it is replaced", args.out)
     with tqdm(desc=f"prepare {args.source}", unit="file", file=sys.stderr) as bar:
         summary, rate = prepare(
             spec, args.out, cfg, workers=args.workers, strict=args.strict, progress=bar,
