@@ -187,21 +187,19 @@ def test_verbose_adds_the_traceback(cache_dir, data_root, tmp_path, caplog):
     assert named in errors[0].getMessage() and errors[0].exc_info is not None
 
 
+TRAIN = ["train", "--data", "c", "--workdir", "w"]
+COMPARE = ["compare", "--a", "a", "--b", "b"]
+
+
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
-        (["train", "--data", "c", "--workdir", "w", "--log-every", "0"],
-         "argument --log-every: '0' must be an integer >= 1"),
-        (["train", "--data", "c", "--workdir", "w", "--keep", "0"],
-         "argument --keep: '0' must be an integer >= 1"),
-        (["train", "--data", "c", "--workdir", "w", "--steps", "-5"],
-         "argument --steps: '-5' must be an integer >= 0"),
-        (["train", "--data", "c", "--workdir", "w", "--minutes", "nan"],
-         "argument --minutes: 'nan' must be a finite number"),
-        (["compare", "--a", "a", "--b", "b", "--block", "0"],
-         "argument --block: '0' must be an integer >= 1"),
-        (["compare", "--a", "a", "--b", "b", "--seed", "x"],
-         "argument --seed: 'x' is not an integer"),
+        ([*TRAIN, "--log-every", "0"], "argument --log-every: '0' must be an integer >= 1"),
+        ([*TRAIN, "--keep", "0"], "argument --keep: '0' must be an integer >= 1"),
+        ([*TRAIN, "--steps", "-5"], "argument --steps: '-5' must be an integer >= 0"),
+        ([*TRAIN, "--minutes", "nan"], "argument --minutes: 'nan' must be a finite number"),
+        ([*COMPARE, "--block", "0"], "argument --block: '0' must be an integer >= 1"),
+        ([*COMPARE, "--seed", "x"], "argument --seed: 'x' is not an integer"),
         (["render", "--cache", "c", "--rotate", "inf"],
          "argument --rotate: 'inf' must be a finite number"),
     ],
