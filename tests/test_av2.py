@@ -356,6 +356,17 @@ def test_degenerate_map_polygons_are_counted_drops(log_copy, caplog):
         next(read_log(str(log_copy), drops))
     assert drops["map:degenerate_drivable_area"] == 2 and drops["map:degenerate_lane"] == 2
     assert f"{path}: 2 map elements dropped (map:degenerate_lane)" in caplog.text
+    # A lane mark type Argoverse 2 does not have is counted and not drawn; an intersection
+    # flag that is not a boolean (the string "false" would read as true) is an error.
+    data["lane_segments"]["906"] = {**lane, "id": 906, "left_lane_mark_type": 7}
+    vmap, dropped = vector_map_from_json(data, str(path))
+    assert dropped["map:unknown_mark_type"] == 1
+    assert next(ln for ln in vmap.lanes if ln.id == 906).left_mark == "UNKNOWN"
+    data["lane_segments"]["906"] = {**lane, "id": 906, "is_intersection": "false"}
+    with pytest.raises(ValueError, match=r"field lane_segments\[906\]\.is_intersection: expected "
+                       r"true or false, got 'false'"):
+        vector_map_from_json(data, str(path))
+    del data["lane_segments"]["906"]
     # Malformed points are errors naming the field, not drops.
     data["drivable_areas"]["905"] = {"area_boundary": [{"x": 1.0}]}
     with pytest.raises(ValueError, match=r"field drivable_areas\[905\]\.area_boundary"):

@@ -142,7 +142,35 @@ def _score_out_is_a_directory(tmp_path, cache, data_root):
     return argv, f"--out {tmp_path}: a directory"
 
 
+def _malformed_cap(tmp_path, cache, data_root):
+    argv = ["sample", "--pretrained", "cpu-av2-womd", "--data", cache, "--num", "1", "--out",
+            str(tmp_path / "s"), "--cap", "vehicle"]
+    return argv, "--cap 'vehicle'"
+
+
+def _top_k_without_render(tmp_path, cache, data_root):
+    argv = ["score", "--pretrained", "cpu-av2-womd", "--data", cache, "--out",
+            str(tmp_path / "s.csv"), "--top-k", "2"]
+    return argv, "--top-k K needs --render DIR"
+
+
+def _step_of_a_pretrained_model(tmp_path, cache, data_root):
+    argv = ["score", "--pretrained", "cpu-av2-womd", "--step", "3", "--data", cache, "--out",
+            str(tmp_path / "s.csv")]
+    return argv, "--step selects a checkpoint of --workdir"
+
+
+def _the_same_cache_twice(tmp_path, cache, data_root):
+    argv = ["train", "--data", cache, os.path.join(cache, "."), "--workdir", str(tmp_path / "w"),
+            "--steps", "1"]
+    return argv, "listed twice"
+
+
 CASES = [
+    _malformed_cap,
+    _top_k_without_render,
+    _step_of_a_pretrained_model,
+    _the_same_cache_twice,
     _set_without_value,
     _set_of_the_preset_name,
     _bad_list_value,
@@ -189,6 +217,7 @@ def test_verbose_adds_the_traceback(cache_dir, data_root, tmp_path, caplog):
 
 TRAIN = ["train", "--data", "c", "--workdir", "w"]
 COMPARE = ["compare", "--a", "a", "--b", "b"]
+SAMPLE = ["sample", "--workdir", "w", "--data", "c", "--num", "1", "--out", "o"]
 
 
 @pytest.mark.parametrize(
@@ -200,6 +229,10 @@ COMPARE = ["compare", "--a", "a", "--b", "b"]
         ([*TRAIN, "--minutes", "nan"], "argument --minutes: 'nan' must be a finite number"),
         ([*COMPARE, "--block", "0"], "argument --block: '0' must be an integer >= 1"),
         ([*COMPARE, "--seed", "x"], "argument --seed: 'x' is not an integer"),
+        ([*SAMPLE, "--seed", "-1"], "argument --seed: '-1' must be an integer >= 0"),
+        ([*SAMPLE, "--seed", str(2**32)], f"argument --seed: '{2**32}' must be an integer below"),
+        ([*SAMPLE, "--proposals", "1001"], "argument --proposals: '1001' must be an integer below"),
+        ([*SAMPLE, "--batch-size", "0"], "argument --batch-size: '0' must be an integer >= 1"),
         (["render", "--cache", "c", "--rotate", "inf"],
          "argument --rotate: 'inf' must be a finite number"),
     ],

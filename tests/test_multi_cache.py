@@ -100,6 +100,8 @@ def test_bad_weights_are_refused():
     for w in ([1.0], [1.0, -1.0], [0.0, 0.0], [1.0, float("nan")]):
         with pytest.raises(ValueError, match="--weights"):
             resolve_weights([3, 4], w)
+    # Weights whose sum overflows float keep their shares.
+    np.testing.assert_allclose(resolve_weights([3, 4], [1.5e308, 1e308]), [0.6, 0.4])
 
 
 def _old_batch_indices(num_scenes, batch_size, seed, step):

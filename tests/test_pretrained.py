@@ -62,6 +62,16 @@ def test_recommended_sampler_settings_roundtrip_and_are_checked(tmp_path):
         manifest_path.write_text(json.dumps({**good, "sampler": bad}))
         with pytest.raises(ValueError, match=f"{manifest_path}: field {field}"):
             load_pretrained(str(d))
+    # The other fields, checked before the parameters are read.
+    without_step = {k: v for k, v in good.items() if k != "step"}
+    for bad, message in ((without_step, "field step: expected an integer, got None"),
+                         ({**good, "step": True}, "field step: expected an integer, got True"),
+                         ({**good, "step": -1}, "field step: expected an integer >= 0"),
+                         ({**good, "sha256": 5}, "field sha256: expected a string"),
+                         ([], "expected a JSON object, got list")):
+        manifest_path.write_text(json.dumps(bad))
+        with pytest.raises(ValueError, match=f"^{manifest_path}: {message}"):
+            load_pretrained(str(d))
 
 
 def test_damaged_or_mismatched_files_name_the_file(tmp_path):

@@ -393,10 +393,19 @@ def test_implausible_lane_widths_are_measured_instead():
     scenario = _standard_scenario()
     lane = scenario["map_features"]["201"]
     lane["width"] = np.array([[9.0, 2.0], [0.5, 40.0], [np.nan, 2.2]], np.float32)
-    [(frame, _)] = sn.frames_from_scenario(scenario, "f.pkl")
+    [(frame, dropped)] = sn.frames_from_scenario(scenario, "f.pkl")
     got = {lane.id: lane for lane in frame.map.lanes}[201]
     np.testing.assert_allclose(got.left[:, 1] - 1.0, 1.8, atol=1e-5)  # default: no line left
     np.testing.assert_allclose(1.0 - got.right[:, 1], [2.0, 2.0, 2.2], atol=1e-5)
+    assert "quirk:lane_width_unusable" not in dropped
+    # A `width` of another shape, or not numbers, is measured too, and counted.
+    for width in (np.full(3, 2.0), np.full((2, 2), 2.0), "wide"):
+        lane["width"] = width
+        [(frame, dropped)] = sn.frames_from_scenario(scenario, "f.pkl")
+        got = {lane.id: lane for lane in frame.map.lanes}[201]
+        np.testing.assert_allclose(1.0 - got.right[:, 1], 2.0, atol=1e-5)  # to the line
+        np.testing.assert_allclose(got.left[:, 1] - 1.0, 1.8, atol=1e-5)
+        assert dropped["quirk:lane_width_unusable"] == 1
 
 
 def test_non_integer_lane_ids_are_enumerated():
@@ -511,6 +520,20 @@ def test_length_shorter_than_width_is_sorted_and_counted():
             r"f\.pkl: sdc_track_index: 'nobody' names no track",
         ),
         (lambda s: s.update(metadata=[1]), r"f\.pkl: metadata: expected a dict"),
+        (
+            lambda s: (s["metadata"].pop("sdc_id"), s.update(sdc_track_index=True)),
+            r"f\.pkl: sdc_track_index: expected a track id or index, got True",
+        ),
+        (lambda s: s.update(length=2.5), r"f\.pkl: length: expected an integer, got 2\.5"),
+        (lambda s: s.update(length="3"), r"f\.pkl: length: expected an integer, got '3'"),
+        (
+            lambda s: s["metadata"].update(dataset={"name": "waymo"}),
+            r"f\.pkl: metadata\.dataset: expected a string",
+        ),
+        (
+            lambda s: s["metadata"].update(scenegen_city_from_world="abc"),
+            r"f\.pkl: metadata\.scenegen_city_from_world: not numbers",
+        ),
         (
             lambda s: s["tracks"]["AV"].update(type="PEDESTRIAN"),
             r"f\.pkl: tracks\['AV'\]\.type: the SDC \(ego\) is a PEDESTRIAN, not a vehicle",

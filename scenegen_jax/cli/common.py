@@ -31,7 +31,7 @@ def load_model(args):
     sampler = {}
     if args.pretrained:
         if args.step is not None:
-            raise SystemExit("--step selects a checkpoint of --workdir; a pretrained model has one")
+            raise ValueError("--step selects a checkpoint of --workdir; a pretrained model has one")
         from scenegen_jax.pretrained import load_pretrained
 
         cfg, params, manifest = load_pretrained(args.pretrained)
@@ -85,7 +85,9 @@ def positive_float(text: str) -> float:
     return value
 
 
-def _integer_at_least(least: int):
+def integer_in(least: int, below: int | None = None):
+    """argparse type: an integer >= `least` (and < `below`)."""
+
     def parse(text: str) -> int:
         try:
             value = int(text)
@@ -93,14 +95,18 @@ def _integer_at_least(least: int):
             raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
         if value < least:
             raise argparse.ArgumentTypeError(f"{text!r} must be an integer >= {least}")
+        if below is not None and value >= below:
+            raise argparse.ArgumentTypeError(f"{text!r} must be an integer below {below}")
         return value
 
     parse.__name__ = f"integer >= {least}"  # argparse names the type in some errors
     return parse
 
 
-positive_int = _integer_at_least(1)  # argparse types
-nonnegative_int = _integer_at_least(0)
+positive_int = integer_in(1)  # argparse types
+nonnegative_int = integer_in(0)
+# A seed: JAX keys and numpy's generators take 32 bits; larger ones would wrap onto these.
+seed_int = integer_in(0, 2**32)
 
 
 def add_temperature_arg(sp) -> None:

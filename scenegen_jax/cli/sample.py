@@ -12,12 +12,18 @@ from scenegen_jax.cli.common import (
     add_distributed_args,
     add_model_args,
     add_temperature_arg,
+    integer_in,
     load_model,
     location_temperature,
     part_path,
+    positive_int,
+    seed_int,
     start_distributed,
 )
 from scenegen_jax.config import Config
+
+# Best-of-M proposals at most (the paper's ablation goes to 20): memory grows with M.
+MAX_PROPOSALS = 1000
 
 
 def parse_caps(pairs, cfg: Config):
@@ -30,8 +36,8 @@ def parse_caps(pairs, cfg: Config):
     for pair in pairs or []:
         name, _, value = pair.partition("=")
         if name not in CLASS_NAMES or not value.isdigit():
-            raise SystemExit(f"--cap {pair!r}: expected CLASS=N with CLASS in {CLASS_NAMES}")
-        caps[CLASS_NAMES.index(name)] = int(value)
+            raise ValueError(f"--cap {pair!r}: expected CLASS=N with CLASS in {CLASS_NAMES}")
+        caps[CLASS_NAMES.index(name)] = min(int(value), cfg.max_actors)  # no more slots
     return caps
 
 
@@ -91,12 +97,9 @@ def cmd_sample(args) -> None:
     from scenegen_jax.sampling.batch import sample_on_cache
     from scenegen_jax.scene import CLASS_NAMES
 
-    if args.num < 1 or args.batch_size < 1:
-        raise SystemExit("--num and --batch-size must be >= 1")
-    if args.proposals is not None and args.proposals < 1:
-        raise SystemExit("--proposals must be >= 1")
     start_distributed(args)
     cfg, params, _, sampler = load_model(args)
+    caps = parse_caps(args.cap, cfg)  # checked before any output is written
     cache = load_cache(args.data)
     cache.check_config(cfg)
     indices, given = conditioning(args, cfg, cache)
@@ -108,7 +111,7 @@ def cmd_sample(args) -> None:
                              location_temperature=location_temperature(args, sampler))
     share, parts = process_share(args.num), jax.process_count()
     scenes = sample_on_cache(params, cfg, cache, args.num, args.seed, indices=indices,
-                             given=given, caps=parse_caps(args.cap, cfg),
+                             given=given, caps=caps,
                              batch_size=args.batch_size, options=options, scenes=share)
     scenarios, counts = [], dict.fromkeys(CLASS_NAMES, 0)
     jsonl_path = os.path.join(out, "scenes.jsonl")
@@ -164,11 +167,12 @@ def add_parsers(sub) -> None:
     add_model_args(sp)
     add_distributed_args(sp, "sampling")
     sp.add_argument("--data", required=True, help="cache whose maps and egos condition the scenes")
-    sp.add_argument("--num", type=int, required=True, help="scenes to sample")
+    sp.add_argument("--num", type=positive_int, required=True, help="scenes to sample")
     sp.add_argument("--out", required=True, help="output directory")
-    sp.add_argument("--proposals", type=int, help="best-of-M proposals of the heading and velocity "
-                    "(default: the config's)")
-    sp.add_argument("--seed", type=int, default=0)
+    sp.add_argument("--proposals", type=integer_in(1, MAX_PROPOSALS + 1),
+                    help="best-of-M proposals of the heading and velocity (default: the "
+                    f"config's; at most {MAX_PROPOSALS})")
+    sp.add_argument("--seed", type=seed_int, default=0)
     add_temperature_arg(sp)
     sp.add_argument(
         "--given",
@@ -190,6 +194,6 @@ def add_parsers(sub) -> None:
     sp.add_argument(
         "--index", type=int, nargs="*", help="cache scene indices to cycle through (default: all)"
     )
-    sp.add_argument("--batch-size", type=int, default=8,
+    sp.add_argument("--batch-size", type=positive_int, default=8,
                     help="scenes per batch, split into concurrent calls (one per core on CPU)")
     sp.set_defaults(func=cmd_sample)

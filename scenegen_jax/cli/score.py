@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
 import sys
 
@@ -15,6 +16,7 @@ from scenegen_jax.cli.common import (
     merge_parts,
     nonnegative_int,
     positive_int,
+    seed_int,
     start_distributed,
 )
 
@@ -35,7 +37,7 @@ def cmd_score(args) -> None:
     )
 
     if args.top_k and not args.render:
-        raise SystemExit("--top-k K needs --render DIR")
+        raise ValueError("--top-k K needs --render DIR")
     for flag, path in (("--out", args.out), ("--actors-out", args.actors_out)):
         if path and os.path.isdir(path):  # found now, not after the scoring
             raise ValueError(f"{flag} {path}: a directory; give a file path")
@@ -127,11 +129,14 @@ def cmd_evaluate(args) -> None:
     from scenegen_jax.eval.evaluate import evaluate, format_table
     from scenegen_jax.sampling import SamplerOptions
 
-    if args.num < 1:
-        raise SystemExit(f"--num must be >= 1, got {args.num}")
     cfg, params, step, sampler = load_model(args)
     cache = load_union(args.data, cfg)
     train_cache = load_union(args.train_data, cfg)
+    both = {os.path.realpath(p) for p in args.data} & {os.path.realpath(p) for p in args.train_data}
+    if both:  # the Procedural baseline would be fitted on the scenes it is scored against
+        logging.getLogger("scenegen").warning(
+            "%s: in both --data and --train-data; the figures are not on held-out scenes",
+            ", ".join(sorted(both)))
     options = SamplerOptions(location_temperature=location_temperature(args, sampler))
     report = evaluate(params, cfg, cache, train_cache, args.num, args.seed, options)
     report["step"] = step
@@ -185,8 +190,8 @@ def add_parsers(sub) -> None:
                     help="caches of the evaluation split (NLL also per source)")
     sp.add_argument("--train-data", required=True, nargs="+", metavar="CACHE",
                     help="training caches (Procedural's KDE)")
-    sp.add_argument("--num", type=int, default=64, help="conditioning scenes for MMD")
-    sp.add_argument("--seed", type=int, default=0)
+    sp.add_argument("--num", type=positive_int, default=64, help="conditioning scenes for MMD")
+    sp.add_argument("--seed", type=seed_int, default=0)
     add_temperature_arg(sp)
     sp.add_argument("--out", required=True, help="report JSON")
     sp.set_defaults(func=cmd_evaluate)

@@ -101,12 +101,38 @@ def _lane_ok(left: np.ndarray, right: np.ndarray) -> bool:
     return has_length(left) and has_length(right) and polygon_area(outline) > MIN_POLYGON_AREA_M2
 
 
+# Argoverse 2's lane mark types (its `LaneMarkType`); another is counted and not drawn.
+MARK_TYPES = frozenset({
+    "DASH_SOLID_YELLOW", "DASH_SOLID_WHITE", "DASHED_WHITE", "DASHED_YELLOW",
+    "DOUBLE_SOLID_YELLOW", "DOUBLE_SOLID_WHITE", "DOUBLE_DASH_YELLOW", "DOUBLE_DASH_WHITE",
+    "SOLID_YELLOW", "SOLID_WHITE", "SOLID_DASH_WHITE", "SOLID_DASH_YELLOW", "SOLID_BLUE",
+    "NONE", "UNKNOWN",
+})
+
+
+def _mark(seg: dict, key: str, dropped: collections.Counter) -> str:
+    """A lane's mark type; one Argoverse 2 does not have is counted and read as UNKNOWN."""
+    mark = seg.get(key, "NONE")
+    if mark in MARK_TYPES:
+        return mark
+    dropped["map:unknown_mark_type"] += 1
+    return "UNKNOWN"
+
+
+def _flag(seg: dict, key: str, path: str, field: str) -> bool:
+    value = seg.get(key, False)
+    if not isinstance(value, bool):
+        raise ValueError(f"{path}: field {field}: expected true or false, got {value!r}")
+    return value
+
+
 def vector_map_from_json(data: dict, path: str) -> tuple[VectorMap, collections.Counter]:
     """Parses an Argoverse 2 `log_map_archive` dict.
 
     Degenerate elements are dropped and counted ("map:degenerate_lane": a boundary without
     length or an outline without area; "map:degenerate_crosswalk" and
-    "map:degenerate_drivable_area": a polygon without area, e.g. fewer than 3 points).
+    "map:degenerate_drivable_area": a polygon without area, e.g. fewer than 3 points), and
+    so are lane mark types Argoverse 2 does not have ("map:unknown_mark_type", not drawn).
     Missing fields, malformed points and NaN/inf raise ValueError naming the file and field.
     """
     if not isinstance(data, dict):
@@ -129,9 +155,9 @@ def vector_map_from_json(data: dict, path: str) -> tuple[VectorMap, collections.
                 lane_type=lane_type,
                 left=left,
                 right=right,
-                left_mark=str(seg.get("left_lane_mark_type", "NONE")),
-                right_mark=str(seg.get("right_lane_mark_type", "NONE")),
-                is_intersection=bool(seg.get("is_intersection", False)),
+                left_mark=_mark(seg, "left_lane_mark_type", dropped),
+                right_mark=_mark(seg, "right_lane_mark_type", dropped),
+                is_intersection=_flag(seg, "is_intersection", path, f"{where}.is_intersection"),
                 successors=_integers(seg.get("successors"), path, f"{where}.successors"),
                 predecessors=_integers(seg.get("predecessors"), path, f"{where}.predecessors"),
             )

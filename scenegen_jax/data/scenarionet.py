@@ -228,10 +228,15 @@ def frames_from_scenario(
         raise _err(source, f"{sdc_field}.state.valid",
                    f"the SDC (ego) is valid at none of the steps 0, {stride}, ... of {length}")
 
-    dataset = str(meta.get("dataset", ""))
+    dataset = meta.get("dataset", "")
+    if not isinstance(dataset, str):
+        raise _err(source, "metadata.dataset", f"expected a string, got {dataset!r}")
     world_map, map_dropped = map_from_features(_get(scenario, "map_features", source, ""), source,
                                                "" if dataset == OWN_DATASET else dataset)
-    city_from_world = np.asarray(meta.get("scenegen_city_from_world", np.eye(3)), np.float64)
+    try:
+        city_from_world = np.asarray(meta.get("scenegen_city_from_world", np.eye(3)), np.float64)
+    except (TypeError, ValueError) as e:
+        raise _err(source, "metadata.scenegen_city_from_world", f"not numbers ({e})") from e
     if city_from_world.shape != (3, 3) or not np.all(np.isfinite(city_from_world)):
         raise _err(source, "metadata.scenegen_city_from_world", "expected a finite 3x3 matrix")
     scenario_id = str(scenario.get("id", meta.get("scenario_id", Path(source).stem)))

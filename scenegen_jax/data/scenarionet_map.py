@@ -157,6 +157,7 @@ class _RealLane(NamedTuple):
     polygon: np.ndarray | None
     left_mark: str
     right_mark: str
+    width_unusable: bool  # a `width` not of [P, 2] numbers: measured instead, counted
 
 
 def _real_lane(
@@ -174,6 +175,7 @@ def _real_lane(
     line) where it is aligned with the centreline and within [MIN_GIVEN_HALF_WIDTH_M,
     MAX_GIVEN_HALF_WIDTH_M]; else the distance along the normal to the lane's own `polygon`
     (nuScenes, nuPlan); else unknown (0), which `outline_lanes` measures from the map's lines.
+    A `width` of another shape, or not of numbers, is counted ("quirk:lane_width_unusable").
     """
     field = f"map_features[{fid!r}]"
     ftype = feature["type"]
@@ -184,10 +186,11 @@ def _real_lane(
         return None
     half = np.zeros((len(center), 2))
     try:
-        w = np.asarray(feature.get("width", ()), dtype=np.float64)
+        w = np.asarray(feature.get("width", np.zeros((len(raw), 2))), dtype=np.float64)
     except (TypeError, ValueError):  # unusable: measured from the lines instead
         w = np.zeros(0)
-    if w.shape == (len(raw), 2):
+    width_unusable = w.shape != (len(raw), 2)
+    if not width_unusable:
         w = w[keep]
         ok = np.isfinite(w) & (w >= MIN_GIVEN_HALF_WIDTH_M) & (w <= MAX_GIVEN_HALF_WIDTH_M)
         half = np.where(ok, w, 0.0)
@@ -224,6 +227,7 @@ def _real_lane(
         polygon,
         _mark_from_boundaries(feature.get("left_boundaries"), features, line_ids),
         _mark_from_boundaries(feature.get("right_boundaries"), features, line_ids),
+        width_unusable,
     )
 
 
@@ -314,6 +318,8 @@ def map_from_features(map_features: Mapping, source: str,
                 dropped["map:degenerate_lane"] += 1
             else:
                 real.append(lane)
+                if lane.width_unusable:
+                    dropped["quirk:lane_width_unusable"] += 1
         elif kind == "lane_boundary":
             continue
         elif kind == "own_line":

@@ -143,7 +143,13 @@ def _geometry(feature: Mapping, keys: Sequence[str], source: str, field: str) ->
 
 
 def _int(value: Any, source: str, field: str) -> int:
+    """An integer field: an int or an integral number (numpy's too), not a string or 91.9."""
+    if isinstance(value, (bool, np.bool_, str, bytes)):
+        raise _err(source, field, f"expected an integer, got {value!r}")
     try:
-        return int(value)
+        out = int(value)
     except (TypeError, ValueError, OverflowError) as e:  # OverflowError: int(inf)
         raise _err(source, field, f"expected an integer, got {value!r}") from e
+    if out != value:
+        raise _err(source, field, f"expected an integer, got {value!r}")
+    return out

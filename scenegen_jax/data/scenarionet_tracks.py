@@ -97,6 +97,8 @@ def _find_sdc(scenario: Mapping, meta: Mapping, tracks: Mapping, source: str) ->
         if "sdc_track_index" not in holder:
             continue
         value = holder["sdc_track_index"]
+        if isinstance(value, (bool, np.bool_)):  # an int to isinstance, never an index here
+            raise _err(source, where, f"expected a track id or index, got {value!r}")
         if str(value) in tracks:
             return str(value)
         if isinstance(value, (int, np.integer)) and 0 <= int(value) < len(tracks):

@@ -122,6 +122,11 @@ def load_union(paths: str | Sequence[str], cfg: Config | None = None) -> CacheUn
     """Opens one or several cache directories as a `CacheUnion` (checked against `cfg` with
     `check_compatible` when given)."""
     paths = [paths] if isinstance(paths, str) else list(paths)
+    real = [os.path.realpath(p) for p in paths]
+    for i, p in enumerate(real):
+        if p in real[:i]:
+            raise ValueError(f"{paths[i]}: listed twice (as {paths[real.index(p)]}); give each "
+                             "cache once (--weights sets how often one is drawn)")
     caches = [load_cache(p) for p in paths]
     if cfg is not None:
         check_compatible(caches, cfg)

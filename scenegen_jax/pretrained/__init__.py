@@ -88,6 +88,23 @@ def check_sampler(sampler, where: str) -> dict:
     return sampler
 
 
+def check_manifest(manifest, where: str) -> dict:
+    """`manifest` if it is a valid manifest (the fields `save_pretrained` writes), else a
+    ValueError naming `where` (the file) and the field."""
+    if not isinstance(manifest, dict):
+        raise ValueError(f"{where}: expected a JSON object, got {type(manifest).__name__}")
+    kinds = {"sha256": (str, "a string"), "parameters": (int, "an integer"),
+             "step": (int, "an integer"), "source": (str, "a string")}
+    for field, (kind, name) in kinds.items():
+        value = manifest.get(field)
+        if isinstance(value, bool) or not isinstance(value, kind):
+            raise ValueError(f"{where}: field {field}: expected {name}, got {value!r}")
+    if manifest["step"] < 0:
+        raise ValueError(f"{where}: field step: expected an integer >= 0, got {manifest['step']}")
+    check_sampler(manifest.get("sampler", {}), where)
+    return manifest
+
+
 def save_pretrained(directory: str, cfg: Config, params, step: int, source: str,
                     sampler: dict | None = None) -> dict:
     """Writes `params` of a model of config `cfg` as a pretrained model directory, with the
@@ -124,10 +141,9 @@ def load_pretrained(name_or_dir: str) -> tuple[Config, dict, dict]:
     """
     directory = resolve(name_or_dir)
     paths = {k: os.path.join(directory, k) for k in (CONFIG_FILE, PARAMS_FILE, MANIFEST_FILE)}
-    manifest = read_json(paths[MANIFEST_FILE])
+    manifest = check_manifest(read_json(paths[MANIFEST_FILE]), paths[MANIFEST_FILE])
     with open(paths[CONFIG_FILE], "rb") as f:
         cfg = Config.from_json(f.read(), paths[CONFIG_FILE])
-    check_sampler(manifest.get("sampler", {}), paths[MANIFEST_FILE])
     with open(paths[PARAMS_FILE], "rb") as f:
         data = f.read()
     if _sha256(data) != manifest.get("sha256"):

@@ -42,8 +42,12 @@ def resolve_weights(sizes: Sequence[int], weights: Sequence[float] | None) -> np
     w = sizes if weights is None else np.asarray(weights, np.float64)
     if w.shape != sizes.shape:
         raise ValueError(f"--weights: {w.size} weight(s) for {sizes.size} cache(s)")
-    if not np.all(np.isfinite(w)) or np.any(w < 0) or w.sum() <= 0:
+    if not np.all(np.isfinite(w)) or np.any(w < 0) or not np.any(w > 0):
         raise ValueError(f"--weights: {w.tolist()}: need finite weights >= 0, not all zero")
+    with np.errstate(over="ignore"):
+        total = w.sum()
+    if not np.isfinite(total):  # weights near float's limit: the same shares, scaled down
+        w = w / w.max()
     return w / w.sum()
 
 
