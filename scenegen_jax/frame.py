@@ -71,12 +71,10 @@ def drop_beyond_limits(frame: Frame) -> tuple[Frame, collections.Counter]:
                          f"{MAX_SPEED_MPS:g} m/s")
     too_big = ~np.all(np.asarray(frame.size, np.float64) <= MAX_SIZE_M, axis=1)
     too_fast = ~too_big & ~(np.linalg.norm(frame.velocity, axis=1) <= MAX_SPEED_MPS)
-    drops = collections.Counter({"invalid:size": int(too_big.sum()),
-                                 "invalid:speed": int(too_fast.sum())})
-    if not drops.total():
-        return frame, collections.Counter()
+    drops = +collections.Counter({"invalid:size": int(too_big.sum()),
+                                  "invalid:speed": int(too_fast.sum())})
     keep = ~(too_big | too_fast)
-    return dataclasses.replace(
-        frame, **{f: getattr(frame, f)[keep]
-                  for f in ("cls", "position", "size", "heading", "velocity", "track_id")}
-    ), +drops
+    if keep.all():
+        return frame, drops
+    fields = ("cls", "position", "size", "heading", "velocity", "track_id")
+    return dataclasses.replace(frame, **{f: getattr(frame, f)[keep] for f in fields}), drops

@@ -212,6 +212,9 @@ def test_damaged_fields_are_named_or_counted():
     with pytest.raises(ValueError, match=r"x\.json: objects\[3\]\.valid: expected booleans, "
                        r"got 'false'"):
         W.frames_from_scenario(data, "x.json", 10)
+    data["objects"][3]["valid"] = [True] * 20 + [None]
+    with pytest.raises(ValueError, match=r"objects\[3\]\.valid: expected booleans, got None"):
+        W.frames_from_scenario(data, "x.json", 10)
     data["objects"][3]["valid"] = 5
     with pytest.raises(ValueError, match=r"x\.json: objects\[3\]\.valid: expected a list"):
         W.frames_from_scenario(data, "x.json", 10)

@@ -123,9 +123,9 @@ def _flags(value: Any, n: int | None, source: str, field: str) -> np.ndarray:
     """bool [n] from a list of JSON booleans (0 and 1 allowed); anything else is named."""
     if not isinstance(value, list):
         raise _err(source, field, f"expected a list of booleans, got {type(value).__name__}")
-    bad = [v for v in value if not _is_flag(v)]
+    bad = [i for i, v in enumerate(value) if not _is_flag(v)]
     if bad:
-        raise _err(source, field, f"expected booleans, got {bad[0]!r}")
+        raise _err(source, field, f"expected booleans, got {value[bad[0]]!r}")
     if n is not None and len(value) != n:
         raise _err(source, field, f"expected {n} values, got {len(value)}")
     return np.asarray(value, bool)
