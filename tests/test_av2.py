@@ -277,6 +277,18 @@ def test_prepare_skips_and_names_unusable_logs(data_root, tmp_path):
     assert summary.dropped["category:BOLLARD"] == bollards + len(categories)
     with pytest.raises(ValueError, match=r"c_no_annotation_rows/annotations\.feather"):
         prepare(spec, str(tmp_path / "strict"), get_config("tiny"), workers=1, strict=True)
+    assert os.listdir(tmp_path / "strict") == []  # no unfinished maps file left behind
+    # Into the good cache: a failed run leaves it whole, with every file as it was.
+    before = {name: (tmp_path / "cache" / name).read_bytes()
+              for name in os.listdir(tmp_path / "cache")}
+    with pytest.raises(ValueError, match=r"c_no_annotation_rows/annotations\.feather"):
+        prepare(spec, str(tmp_path / "cache"), get_config("tiny"), workers=1, strict=True)
+    (tmp_path / "empty_root" / "train" / "d_empty").mkdir(parents=True)
+    with pytest.raises(ValueError, match="no scenes to write"):
+        prepare(source_spec("av2", str(tmp_path / "empty_root"), "train"),
+                str(tmp_path / "cache"), get_config("tiny"), workers=1)
+    assert {name: (tmp_path / "cache" / name).read_bytes()
+            for name in os.listdir(tmp_path / "cache")} == before
 
 
 def test_implausible_rows_are_counted_drops(log_copy, caplog):

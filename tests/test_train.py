@@ -478,6 +478,24 @@ def test_init_from_reads_a_pretrained_model_or_names_what_it_is_not(tmp_path):
         start_params(str(tmp_path / "nothing"))
 
 
+def test_a_failed_init_from_leaves_a_new_workdir_empty(tiny_train_cache, tmp_path):
+    """`train --init-from` with a source that is not there, or of another shape, fails before
+    it writes config.json or data.json, so the same workdir takes the next try's config."""
+    from scenegen_jax.pretrained import save_pretrained
+    from scenegen_jax.train.loop import train
+
+    workdir = tmp_path / "wd"
+    with pytest.raises(FileNotFoundError, match="--init-from: neither a workdir"):
+        train(CFG, tiny_train_cache.path, str(workdir), steps=1, progress=False,
+              init_from=str(tmp_path / "nothing"))
+    save_pretrained(str(tmp_path / "narrow"), CFG.replace(hidden=4),
+                    init_state(CFG.replace(hidden=4)).params, 1, "test")
+    with pytest.raises(ValueError, match="narrow: parameter .* has shape"):
+        train(CFG, tiny_train_cache.path, str(workdir), steps=1, progress=False,
+              init_from=str(tmp_path / "narrow"))
+    assert not workdir.exists() or not os.listdir(workdir)
+
+
 def test_coordinate_channels_tell_rows_apart_and_start_at_zero_from_a_warm_start():
     """With `coord_channels` layer 1's gates depend on the pixel's row and column (a map that
     is the same everywhere gives different gates at the top and the bottom); extended from a

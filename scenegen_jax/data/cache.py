@@ -152,9 +152,20 @@ class _NpyAppender:
         self.file.close()
         os.replace(self.path + ".tmp", self.path)
 
+    def discard(self) -> None:
+        """Closes and removes the unfinished file (any earlier `path` stays as it was)."""
+        self.file.close()
+        if os.path.exists(self.path + ".tmp"):
+            os.remove(self.path + ".tmp")
+
 
 class CacheWriter:
-    """Appends encoded frames to a cache directory; `close` writes the arrays and meta.json."""
+    """Appends encoded frames to a cache directory; `close` writes the arrays and meta.json.
+
+    Used as a context manager: when the block raises (a bad file under `--strict`, no scenes,
+    an interrupt), the unfinished maps file is removed and a cache already in the directory
+    is left whole.
+    """
 
     def __init__(self, out_dir: str, cfg: Config, source: dict | None = None) -> None:
         os.makedirs(out_dir, exist_ok=True)
@@ -166,6 +177,13 @@ class CacheWriter:
         )
         self.arrays: dict = collections.defaultdict(list)
         self.ids: list[str] = []
+
+    def __enter__(self) -> CacheWriter:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is not None:
+            self.maps.discard()
 
     def add(self, enc: EncodedFrame) -> None:
         self.maps.append(enc.map)
@@ -184,9 +202,9 @@ class CacheWriter:
 
     def close(self, drops: collections.Counter) -> Summary:
         """Writes actors.npz and meta.json (with `drops` as the summary's dropped rows)."""
-        self.maps.close()
         if not self.ids:
             raise ValueError(f"{self.out_dir}: no scenes to write")
+        self.maps.close()
         self.summary.dropped = dict(sorted(drops.items()))
         np.savez(
             os.path.join(self.out_dir, "actors.npz"),
@@ -224,12 +242,12 @@ def write_cache(
     that the vector maps can be read again (the baselines need them). `scenegen_jax.data.
     prepare` does the same over a source's files in parallel.
     """
-    writer = CacheWriter(out_dir, cfg, source)
-    for frame in frames:
-        writer.add(encode_frame(frame, cfg))
-        if progress is not None:
-            progress.update(1)
-    return writer.close(drops)
+    with CacheWriter(out_dir, cfg, source) as writer:
+        for frame in frames:
+            writer.add(encode_frame(frame, cfg))
+            if progress is not None:
+                progress.update(1)
+        return writer.close(drops)
 
 
 def pad_frame_actors(frame: Frame, cfg: Config, slots: int) -> tuple[dict, np.ndarray, int]:

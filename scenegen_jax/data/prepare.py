@@ -90,7 +90,16 @@ def prepare(
         spec = {**spec, "shard": [index, count]}
     workers = workers or cpu_cores()
     start = time.perf_counter()
-    writer = CacheWriter(out_dir, cfg, spec)
+    with CacheWriter(out_dir, cfg, spec) as writer:
+        drops = _encode_into(writer, spec, files, cfg, workers, strict, progress)
+        summary = writer.close(drops)
+    return summary, summary.scenes / max(time.perf_counter() - start, 1e-9)
+
+
+def _encode_into(writer: CacheWriter, spec: dict, files: list[str], cfg: Config, workers: int,
+                 strict: bool, progress) -> collections.Counter:
+    """Encodes `files` (in `workers` processes) into `writer` in file order, counting the
+    unusable ones in its summary; returns the readers' dropped rows."""
     drops: collections.Counter = collections.Counter()
     bad: collections.Counter = collections.Counter()
     if progress is not None:
@@ -129,5 +138,4 @@ def prepare(
             while pending:
                 consume(pending.popleft().result())
     writer.summary.bad_files = dict(sorted(bad.items()))
-    summary = writer.close(drops)
-    return summary, summary.scenes / max(time.perf_counter() - start, 1e-9)
+    return drops

@@ -193,6 +193,10 @@ def train(
                  "(unrotated): each trains on its first %d in canonical order, without a stop "
                  "token", over, len(cache), cfg.max_actors, cfg.max_actors)
     shares = resolve_weights(cache.sizes, weights)
+    state = init_state(cfg)
+    warm = None
+    if init_from is not None and not os.path.exists(os.path.join(workdir, CONFIG_FILE)):
+        warm = warm_started(state, cfg, init_from)  # a new workdir: fail before writing to it
     save_or_check_config(workdir, cfg)
     save_or_check_data(workdir, cache, weights)
     mesh = make_mesh()
@@ -201,16 +205,11 @@ def train(
     ckpt = Checkpointer(os.path.join(workdir, CHECKPOINTS), save_every, keep, heal=True)
     rows = local_rows(data_sharding, cfg.batch_size)
     replicated = NamedSharding(mesh, P())
-    state = init_state(cfg)
     restored = ckpt.restore_latest(state, sharding=replicated)
     if restored is not None:
         state = restored
     elif init_from is not None:
-        source_cfg, source = start_params(init_from)
-        params = warm_start(state.params, source, init_from, cfg.map_channels,
-                            source_cfg.map_channels, fresh=reframed(cfg, source_cfg))
-        state = state._replace(params=params, opt_state=make_optimizer(cfg).init(params),
-                               ema=start_ema(cfg, params))
+        state = warm if warm is not None else warm_started(state, cfg, init_from)
         log.info("starting from the parameters of %s", init_from)
     state = jax.device_put(state, replicated)
     start = int(state.step)
@@ -322,6 +321,16 @@ def split_attribute_mlp(source: dict, params: dict) -> dict:
         out[f"{name}2_b"] = source[f"{SHARED_ATTRIBUTE_MLP}2_b"][..., start:stop]
         start = stop
     return out
+
+
+def warm_started(state: TrainState, cfg: Config, init_from: str) -> TrainState:
+    """The fresh `state` with the parameters of `init_from` (`start_params`, `warm_start`),
+    and an optimizer and moving average started on them."""
+    source_cfg, source = start_params(init_from)
+    params = warm_start(state.params, source, init_from, cfg.map_channels,
+                        source_cfg.map_channels, fresh=reframed(cfg, source_cfg))
+    return state._replace(params=params, opt_state=make_optimizer(cfg).init(params),
+                          ema=start_ema(cfg, params))
 
 
 def start_params(init_from: str) -> tuple[Config, dict]:
