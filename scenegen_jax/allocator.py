@@ -47,7 +47,13 @@ def find_tcmalloc(env: Mapping[str, str]) -> str | None:
         return choice
     if not sys.platform.startswith("linux"):
         return None
-    return ctypes.util.find_library(LIBRARY)
+    try:
+        return ctypes.util.find_library(LIBRARY)
+    except OSError:
+        # CPython's search runs the compiler and reads ld.so's complaint about a missing
+        # LD_PRELOAD library as a path to open (a stale `LD_PRELOAD=.../libtcmalloc_minimal.so.4`
+        # on a machine without it): none found, so the system's malloc.
+        return None
 
 
 def preload_env(env: Mapping[str, str]) -> dict[str, str] | None:

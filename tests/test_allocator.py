@@ -88,3 +88,16 @@ def test_the_command_names_a_missing_library(tmp_path):
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 2
     assert f"{allocator.SWITCH}={missing}: no such file" in out.stderr
+
+
+def test_a_stale_preload_of_a_missing_tcmalloc_runs_on(tmp_path):
+    """`LD_PRELOAD` naming a tcmalloc that is not there (ld.so prints an error and goes on):
+    the command runs. CPython's `find_library` raised FileNotFoundError on ld.so's message
+    where no tcmalloc is installed, and every command failed with it."""
+    stale = str(tmp_path / "libtcmalloc_minimal.so.4")
+    env = {k: v for k, v in os.environ.items() if k != allocator.SWITCH}
+    out = subprocess.run([sys.executable, "-m", "scenegen_jax.cli", "models"],
+                         env={**env, "LD_PRELOAD": stale}, capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "cpu-av2-womd" in out.stdout
