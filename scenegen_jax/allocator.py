@@ -44,6 +44,9 @@ def find_tcmalloc(env: Mapping[str, str]) -> str | None:
         if not os.path.isfile(choice):
             raise FileNotFoundError(f"{SWITCH}={choice}: no such file (a tcmalloc library, "
                                     "or `system` for glibc's malloc)")
+        if any(c in choice for c in " \t:"):  # LD_PRELOAD splits its list at these
+            raise ValueError(f"{SWITCH}={choice}: LD_PRELOAD cannot hold a path with a space "
+                             "or a colon; link the library from a path without them")
         return choice
     if not sys.platform.startswith("linux"):
         return None

@@ -33,6 +33,15 @@ def test_a_missing_path_names_the_switch(tmp_path):
         allocator.find_tcmalloc({allocator.SWITCH: str(tmp_path / "libtcmalloc.so")})
 
 
+def test_a_path_that_ld_preload_would_split_is_refused(tmp_path):
+    for name in ("my lib", "my:lib"):
+        path = tmp_path / name / "libtcmalloc_minimal.so.4"
+        path.parent.mkdir()
+        path.write_bytes(b"")
+        with pytest.raises(ValueError, match="LD_PRELOAD cannot hold a path with a space or a"):
+            allocator.find_tcmalloc({allocator.SWITCH: str(path)})
+
+
 def test_preload_goes_first_and_keeps_the_rest(lib):
     env = allocator.preload_env({allocator.SWITCH: str(lib), "LD_PRELOAD": "/a/libx.so:/b/liby.so",
                                  "KEEP": "1"})

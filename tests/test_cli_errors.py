@@ -7,6 +7,8 @@ import collections
 import logging
 import os
 import shutil
+import subprocess
+import sys
 
 import pytest
 
@@ -71,6 +73,26 @@ def _truncated_maps(tmp_path, cache, data_root):
 def _output_under_a_file(tmp_path, cache, data_root):
     (tmp_path / "a_file").write_text("")
     return ["render", "--cache", cache, "--out", str(tmp_path / "a_file" / "r.png")], "a_file"
+
+
+def _outputs_under_a_file(command):
+    """`command` with its output file under a regular file: refused before any model work."""
+    def case(tmp_path, cache, data_root):
+        (tmp_path / "a_file").write_text("")
+        out = str(tmp_path / "a_file" / "out")
+        argv = {
+            "score": ["score", "--pretrained", "cpu-av2-womd", "--data", cache, "--out", out],
+            "actors-out": ["score", "--pretrained", "cpu-av2-womd", "--data", cache, "--out",
+                           str(tmp_path / "s.csv"), "--actors-out", out],
+            "evaluate": ["evaluate", "--pretrained", "cpu-av2-womd", "--data", cache,
+                         "--train-data", cache, "--num", "1", "--out", out],
+            "sample": ["sample", "--pretrained", "cpu-av2-womd", "--data", cache, "--num", "1",
+                       "--out", out],
+        }[command]
+        flag = "--actors-out" if command == "actors-out" else "--out"
+        return argv, f"{flag} {out}: cannot make the folder"
+    case.__name__ = f"_{command}_under_a_file"
+    return case
 
 
 def _bad_set_value(tmp_path, cache, data_root):
@@ -179,6 +201,7 @@ CASES = [
     _truncated_actors,
     _truncated_maps,
     _output_under_a_file,
+    *(_outputs_under_a_file(c) for c in ("score", "actors-out", "evaluate", "sample")),
     _bad_set_value,
     _missing_cache,
     _workdir_without_checkpoints,
@@ -241,3 +264,49 @@ def test_flag_values_are_checked_before_any_work(argv, message, capsys):
     with pytest.raises(SystemExit) as e:
         cli.main(argv)
     assert e.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_an_unknown_compile_cache_switch_is_named(monkeypatch, tmp_path, caplog):
+    """SCENEGEN_COMPILE_CACHE takes on/off words; another value (`none`) is refused, not
+    read as on."""
+    monkeypatch.setenv("SCENEGEN_COMPILE_CACHE", "none")
+    code, errors = _run(["score", "--pretrained", "cpu-av2-womd", "--data", str(tmp_path),
+                         "--out", str(tmp_path / "s.csv")], caplog)
+    assert code == 2 and "SCENEGEN_COMPILE_CACHE=none: use off" in errors[0].getMessage()
+
+
+def _command(env: dict[str, str], *argv: str) -> subprocess.CompletedProcess:
+    clean = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_", "SCENEGEN_"))}
+    return subprocess.run([sys.executable, "-m", "scenegen_jax.cli", *argv],
+                          env={**clean, **env}, capture_output=True, text=True, timeout=300)
+
+
+def test_a_backend_this_machine_lacks_is_one_line_and_exit_2():
+    out = _command({"JAX_PLATFORMS": "tpu"}, "models")
+    assert out.returncode == 2, out.stderr
+    assert "JAX_PLATFORMS=tpu: JAX cannot start that backend here" in out.stderr
+    assert "Traceback" not in out.stderr
+
+
+def test_jaxs_global_switches_in_the_environment_change_nothing(cache_dir, tmp_path):
+    """JAX_ENABLE_X64=1 (float64 by default) and JAX_NUMPY_RANK_PROMOTION=raise broke every
+    model command; the command sets them as the package needs: the same scores."""
+    from scenegen_jax.checkpoint import Checkpointer
+    from scenegen_jax.train.loop import save_or_check_config
+    from scenegen_jax.train.step import init_state
+
+    cfg = get_config("tiny")
+    workdir = str(tmp_path / "wd")
+    save_or_check_config(workdir, cfg)
+    ckpt = Checkpointer(os.path.join(workdir, "checkpoints"), every=1)
+    ckpt.save(init_state(cfg), force=True)
+    ckpt.close()
+    scores = {}
+    for name, env in (("plain", {}),
+                      ("switched", {"JAX_ENABLE_X64": "1", "JAX_NUMPY_RANK_PROMOTION": "raise"})):
+        out = tmp_path / f"{name}.csv"
+        run = _command({**env, "SCENEGEN_COMPILE_CACHE": "off"}, "score", "--workdir", workdir,
+                       "--data", cache_dir, "--out", str(out))
+        assert run.returncode == 0, run.stderr
+        scores[name] = out.read_text()
+    assert scores["switched"] == scores["plain"] and scores["plain"].count("\n") > 2

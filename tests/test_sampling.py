@@ -693,7 +693,7 @@ def test_real_network_order_channel_is_the_one_training_sees(real_inputs):
 
 
 # ----------------------------------------------------------------------------- CLI
-def test_cli_sample_end_to_end(tmp_path, val_cache):
+def test_cli_sample_end_to_end(tmp_path, val_cache, monkeypatch):
     """A workdir holding an (untrained) checkpoint -> `scenegen sample` outputs."""
     from scenegen_jax.checkpoint import Checkpointer
     from scenegen_jax.cli import main
@@ -760,6 +760,25 @@ def test_cli_sample_end_to_end(tmp_path, val_cache):
     main(bad + ["--allow-overlap"])
     rows = [json.loads(line) for line in (tmp_path / "bad" / "scenes.jsonl").open()]
     assert [(r["num_given"], r["actors"][0]["x"]) for r in rows] == [(1, pytest.approx(3.0))] * 2
+    # Stopped after its first scene (Ctrl-C): exit 130 and no scenes.jsonl, nor a partial one,
+    # that would pass for a finished run's.
+    import scenegen_jax.cli.sample as sample_cli
+
+    written = []
+
+    def stopped(*a, **k):
+        if written:
+            raise KeyboardInterrupt
+        written.append(1)
+        return sample_cli_write(*a, **k)
+
+    sample_cli_write = sample_cli.write_sampled
+    monkeypatch.setattr(sample_cli, "write_sampled", stopped)
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv[:8] + [str(tmp_path / "stopped")] + argv[9:])
+    assert exit_info.value.code == 130 and written
+    assert len(os.listdir(tmp_path / "stopped" / "png")) == 1
+    assert not [n for n in os.listdir(tmp_path / "stopped") if n.startswith("scenes.jsonl")]
 
 
 def _vehicle(x, y, heading=0.0, width=2.0, length=4.0, cls="vehicle"):

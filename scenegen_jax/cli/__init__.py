@@ -39,8 +39,12 @@ def enable_compile_cache() -> str | None:
     """
     import jax
 
-    if os.environ.get("SCENEGEN_COMPILE_CACHE", "").lower() in ("0", "off", "false", "no"):
+    switch = os.environ.get("SCENEGEN_COMPILE_CACHE", "")
+    if switch.lower() in ("0", "off", "false", "no"):
         return None
+    if switch.lower() not in ("", "1", "on", "true", "yes"):
+        raise ValueError(f"SCENEGEN_COMPILE_CACHE={switch}: use off (or 0, false, no) to turn "
+                         "the compile cache off, on (or unset) to keep it")
     if not jax.config.jax_compilation_cache_dir:
         base = os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache")
         jax.config.update("jax_compilation_cache_dir", os.path.join(base, "scenegen_jax", "jax"))
@@ -48,18 +52,37 @@ def enable_compile_cache() -> str | None:
     return jax.config.jax_compilation_cache_dir
 
 
+def start_jax(distributed: bool) -> None:
+    """Sets JAX's process-wide switches as the package needs them and starts its backend, so
+    that a JAX_PLATFORMS naming a backend this machine lacks is one line of error, not a
+    traceback. A `--distributed` run's backend starts when it joins the job
+    (`jax.distributed.initialize` must come first)."""
+    import jax
+
+    # float32 throughout: JAX_ENABLE_X64=1 would make new arrays float64 and the convolutions
+    # refuse the mix. numpy's broadcasting: JAX_NUMPY_RANK_PROMOTION=raise would refuse it.
+    jax.config.update("jax_enable_x64", False)
+    jax.config.update("jax_numpy_rank_promotion", "allow")
+    if distributed:
+        return
+    try:
+        jax.devices()
+    except (RuntimeError, AssertionError) as e:  # AssertionError: a CUDA backend not built in
+        reason = str(e).split("\n")[0] or "not available"
+        raise ValueError(f"JAX_PLATFORMS={os.environ.get('JAX_PLATFORMS', '')}: JAX cannot "
+                         f"start that backend here ({reason}); unset it to let JAX choose") from e
+
+
 def main(argv: list[str] | None = None) -> None:
     if argv is None:  # the `scenegen` command itself: on tcmalloc where it is installed
         try:
             reexec_with_tcmalloc()
-        except FileNotFoundError as e:  # SCENEGEN_MALLOC names no file: bad input, exit 2
+        except (FileNotFoundError, ValueError) as e:  # a bad SCENEGEN_MALLOC: exit 2
             print(f"scenegen: {e}", file=sys.stderr)
             raise SystemExit(2) from e
     args = build_parser().parse_args(argv)
     from scenegen_jax.cli import model, sample, score
 
-    if args.func in (model.cmd_train, score.cmd_score, sample.cmd_sample, score.cmd_evaluate):
-        enable_compile_cache()
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(levelname)s %(name)s: %(message)s",
@@ -67,7 +90,13 @@ def main(argv: list[str] | None = None) -> None:
     for noisy in ("jax", "absl", "matplotlib", "orbax"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
     try:
+        start_jax(getattr(args, "distributed", False))
+        if args.func in (model.cmd_train, score.cmd_score, sample.cmd_sample, score.cmd_evaluate):
+            enable_compile_cache()
         args.func(args)
+    except KeyboardInterrupt:
+        logging.getLogger("scenegen").error("interrupted")
+        raise SystemExit(130) from None
     except (OSError, ValueError, IndexError) as e:
         # Bad input (a file, a field, a flag): one line naming it, exit 2; -v adds the
         # traceback. Every reader raises these with the file and the field in the message.

@@ -12,6 +12,7 @@ from scenegen_jax.cli.common import (
     add_distributed_args,
     add_model_args,
     add_temperature_arg,
+    check_output,
     integer_in,
     load_model,
     location_temperature,
@@ -19,6 +20,7 @@ from scenegen_jax.cli.common import (
     positive_int,
     seed_int,
     start_distributed,
+    written_whole,
 )
 from scenegen_jax.config import Config
 
@@ -97,6 +99,7 @@ def cmd_sample(args) -> None:
     from scenegen_jax.sampling.batch import sample_on_cache
     from scenegen_jax.scene import CLASS_NAMES
 
+    check_output("--out", args.out, folder=True)  # found now, not after the sampling
     start_distributed(args)
     cfg, params, _, sampler = load_model(args)
     caps = parse_caps(args.cap, cfg)  # checked before any output is written
@@ -116,8 +119,10 @@ def cmd_sample(args) -> None:
     scenarios, counts = [], dict.fromkeys(CLASS_NAMES, 0)
     jsonl_path = os.path.join(out, "scenes.jsonl")
     part_of = lambda i: part_path(jsonl_path, i, parts)  # noqa: E731
+    # scenes.jsonl appears when every scene's files are written: a run that stops has none.
     with (
-        open(jsonl_path if parts == 1 else part_of(jax.process_index()), "w") as jsonl,
+        written_whole(jsonl_path if parts == 1 else part_of(jax.process_index())) as tmp,
+        open(tmp, "w") as jsonl,
         tqdm(total=len(share), desc="sample", unit="scene", file=sys.stderr,
              disable=not is_main_process()) as bar,
     ):
@@ -130,7 +135,7 @@ def cmd_sample(args) -> None:
                                       city_from_ego=cache.city_from_ego[scene.map_index])
             scenarios.append(scenario_from_frame(frame, row["scene"]))
             bar.update(1)
-    write_dataset(scenarios, os.path.join(out, "scenarionet"), index=parts == 1)
+        write_dataset(scenarios, os.path.join(out, "scenarionet"), index=parts == 1)
     if parts > 1:
         sync_processes(f"samples of {out} written")
         if not is_main_process():
@@ -147,7 +152,7 @@ def merge_sample_parts(out: str, parts: list[str]) -> dict[str, int]:
     from scenegen_jax.scene import CLASS_NAMES
 
     counts, names = dict.fromkeys(CLASS_NAMES, 0), []
-    with open(os.path.join(out, "scenes.jsonl"), "w") as jsonl:
+    with written_whole(os.path.join(out, "scenes.jsonl")) as tmp, open(tmp, "w") as jsonl:
         for part in parts:
             with open(part) as f:
                 for line in f:

@@ -11,6 +11,7 @@ from scenegen_jax.cli.common import (
     add_distributed_args,
     add_model_args,
     add_temperature_arg,
+    check_output,
     load_model,
     location_temperature,
     merge_parts,
@@ -18,6 +19,7 @@ from scenegen_jax.cli.common import (
     positive_int,
     seed_int,
     start_distributed,
+    written_whole,
 )
 
 
@@ -38,9 +40,11 @@ def cmd_score(args) -> None:
 
     if args.top_k and not args.render:
         raise ValueError("--top-k K needs --render DIR")
-    for flag, path in (("--out", args.out), ("--actors-out", args.actors_out)):
-        if path and os.path.isdir(path):  # found now, not after the scoring
-            raise ValueError(f"{flag} {path}: a directory; give a file path")
+    check_output("--out", args.out)  # found now, not after the scoring
+    if args.actors_out:
+        check_output("--actors-out", args.actors_out)
+    if args.render:
+        check_output("--render", args.render, folder=True)
     start_distributed(args)
     cfg, params, _, _ = load_model(args)
     cache = load_union(args.data, cfg)  # every --data cache, its scenes one after another
@@ -62,8 +66,9 @@ def cmd_score(args) -> None:
     if args.actors_out:
         parts = source_slices(cache)  # per scene: its source's number in source_labels
         which = np.concatenate([np.full(p.stop - p.start, n) for n, (_, p) in enumerate(parts)])
-        np.savez(args.actors_out, **scores, source=which,
-                 source_labels=np.array([name for name, _ in parts]))
+        with written_whole(args.actors_out) as tmp, open(tmp, "wb") as f:
+            np.savez(f, **scores, source=which,
+                     source_labels=np.array([name for name, _ in parts]))
 
 
 def write_scores_csv(path: str, scores: dict, cache) -> None:
@@ -78,8 +83,9 @@ def write_scores_csv(path: str, scores: dict, cache) -> None:
     total = sum(scores[k] for k in TERMS)
     n_actors = actor_steps(scores).sum(1)
     complete = complete_scenes(scores)
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    with open(path, "w", newline="") as f:
+    # surrogateescape: a path's bytes that are not UTF-8 (in `source`) are written back as is.
+    with (written_whole(path) as tmp,
+          open(tmp, "w", newline="", encoding="utf-8", errors="surrogateescape") as f):
         writer = csv.writer(f)
         writer.writerow(["index", "scene_id", "actors", "complete", "scene_nll", "nll_per_actor",
                          *[f"{k}_nll" for k in TERMS], "source"])
@@ -129,6 +135,7 @@ def cmd_evaluate(args) -> None:
     from scenegen_jax.eval.evaluate import evaluate, format_table
     from scenegen_jax.sampling import SamplerOptions
 
+    check_output("--out", args.out)  # found now, not after the sampling
     cfg, params, step, sampler = load_model(args)
     cache = load_union(args.data, cfg)
     train_cache = load_union(args.train_data, cfg)
@@ -141,8 +148,7 @@ def cmd_evaluate(args) -> None:
     report = evaluate(params, cfg, cache, train_cache, args.num, args.seed, options)
     report["step"] = step
     report["command"] = " ".join(["scenegen", *sys.argv[1:]])
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w") as f:
+    with written_whole(args.out) as tmp, open(tmp, "w") as f:
         json.dump(report, f, indent=1)
     print(format_table(report))
 
@@ -150,10 +156,11 @@ def cmd_evaluate(args) -> None:
 def cmd_compare(args) -> None:
     from scenegen_jax.eval.compare import compare_files
 
+    if args.out:
+        check_output("--out", args.out)
     report = compare_files(args.a, args.b, args.term, args.block, args.samples, args.seed)
     if args.out:
-        os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-        with open(args.out, "w") as f:
+        with written_whole(args.out) as tmp, open(tmp, "w") as f:
             json.dump(report, f, indent=1)
     print(f"{args.term} NLL per actor, A minus B (95% block-bootstrap interval)")
     for name, r in report["rows"].items():

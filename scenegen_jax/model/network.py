@@ -683,8 +683,8 @@ def init_params(cfg: Config, key):
     values (`InitialDraws`: `tiny`'s program compiles in 0.5 s instead of 2.5 s, slow Xeon)."""
     net = SceneGenNet(cfg)
     h = cfg.grid_size
-    m = jnp.zeros((1, h, h, len(cfg.map_channels)))
-    a = jnp.zeros((1, h, h, NUM_ACTOR_CHANNELS))
+    m = jnp.zeros((1, h, h, len(cfg.map_channels)), jnp.float32)
+    a = jnp.zeros((1, h, h, NUM_ACTOR_CHANNELS), jnp.float32)
     z = jnp.zeros((1,), jnp.int32)
 
     def init(k):
