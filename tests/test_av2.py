@@ -291,6 +291,20 @@ def test_prepare_skips_and_names_unusable_logs(data_root, tmp_path):
             for name in os.listdir(tmp_path / "cache")} == before
 
 
+def test_a_log_under_a_path_that_is_not_utf8_reads(log_copy, tmp_path):
+    """A folder name with bytes that are not UTF-8 (Linux allows them): the log reads to the
+    same frames. pyarrow refused such a path, and the good log was counted as unreadable."""
+    odd = tmp_path / os.fsdecode(b"logs\xff")
+    odd.mkdir()
+    os.rename(log_copy, odd / log_copy.name)
+    drops, frames = collections.Counter(), list(read_log(str(odd / log_copy.name),
+                                                         collections.Counter()))
+    want = list(read_log(str(_copy_log(odd / log_copy.name, tmp_path / "plain")), drops))
+    assert len(frames) == len(want) > 0
+    for a, b in zip(frames, want, strict=True):
+        np.testing.assert_array_equal(a.position, b.position)
+
+
 def test_implausible_rows_are_counted_drops(log_copy, caplog):
     """Zero and non-unit quaternions, boxes over 30 m and duplicate (track, timestamp) rows
     are dropped with a reason; a quaternion within the 1e-3 tolerance is kept."""

@@ -107,7 +107,8 @@ def read_table(path: str, columns: tuple[str, ...]) -> dict[str, np.ndarray]:
     if not os.path.isfile(path):
         raise FileNotFoundError(f"{path}: file not found")
     try:
-        table = feather.read_table(path)
+        with open(path, "rb") as f:  # Python opens it: pyarrow refuses non-UTF-8 path bytes
+            table = feather.read_table(f)
         table.validate(full=True)  # offsets and UTF-8: a damaged buffer is caught here
     except Exception as e:  # pyarrow raises several types for corrupt files
         raise ValueError(f"{path}: not a readable feather file ({e})") from e
