@@ -14,6 +14,7 @@ import itertools
 import json
 import math
 import os
+import pathlib
 import re
 
 import jax
@@ -690,6 +691,77 @@ def test_real_network_order_channel_is_the_one_training_sees(real_inputs):
         np.testing.assert_allclose(out.heatmaps[0, 0, k], want[0], rtol=1e-4, atol=1e-6)
         if k:  # the channel matters once an actor has been placed
             assert np.abs(want[0] - want[1]).max() > 1e-3
+
+
+def test_library_calls_check_their_arguments_before_any_work(val_cache, data_root, tmp_path):
+    """The Python API refuses what the command line refuses, at the call: a cache of another
+    grid (read at the wrong scale before), a seed JAX would fold onto another (2^32 gave seed
+    0's scenes), scene numbers outside the cache, an uncropped canvas, an empty request."""
+    from scenegen_jax.eval.evaluate import evaluate
+    from scenegen_jax.eval.nll import score_cache
+    from scenegen_jax.model.network import init_params
+    from scenegen_jax.sampling.batch import sample_on_cache, sample_scenes, seed_key
+    from scenegen_jax.scene import empty_actors, tree_take
+    from scenegen_jax.viz.render import render_scene
+
+    params = init_params(TINY, jax.random.key(0))
+    cpu = get_config("cpu")
+    for bad in (2**32, -1, 1.5, True, "3"):
+        with pytest.raises(ValueError, match=r"seed: an integer in \[0, 2\*\*32\)"):
+            seed_key(bad)
+    assert np.array_equal(jax.random.key_data(seed_key(np.uint32(7))),
+                          jax.random.key_data(jax.random.key(7)))
+
+    def refused(match, fn, *args, **kwargs):
+        with pytest.raises(ValueError, match=match):
+            fn(*args, **kwargs)
+
+    refused("field grid_size: cache has 32, config 'cpu' wants 64", sample_on_cache,
+            params, cpu, val_cache, 1, 0)
+    refused("seed", sample_on_cache, params, TINY, val_cache, 1, 2**32)
+    for indices in ([len(val_cache)], [], [-1]):
+        refused("indices", sample_on_cache, params, TINY, val_cache, 1, 0, indices=indices)
+    refused("given: a sequence of Actors", sample_on_cache, params, TINY, val_cache, 1, 0,
+            given=empty_actors(2))
+    egos = val_cache.ego(np.arange(2))
+    refused(r"maps: shape \(2, 48, 48, 15\), config .tiny. needs \[B, 32, 32", sample_scenes,
+            jax.random.key(0), params, TINY, val_cache.maps[:2], egos)
+    cropped = np.zeros((2, TINY.grid_size, TINY.grid_size, len(TINY.map_channels)), np.float32)
+    refused(r"egos: \(2,\) rows for 3 maps", sample_scenes, jax.random.key(0), params, TINY,
+            np.concatenate([cropped, cropped[:1]]), egos)
+    refused("num_per_map must be >= 1", sample_scenes, jax.random.key(0), params, TINY,
+            cropped, egos, num_per_map=0)
+
+    refused("field grid_size", score_cache, params, val_cache, cpu)
+    n = len(val_cache)
+    for scenes in (range(0, n, 2), range(4, 2), range(0, n + 1), range(-1, 2)):
+        refused(r"scenes range", score_cache, params, val_cache, TINY, scenes=scenes)
+    refused("batch_size and workers must be >= 1", score_cache, params, val_cache, TINY,
+            batch_size=0)
+    refused("batch_size and workers must be >= 1", score_cache, params, val_cache, TINY,
+            workers=0)
+    refused("num_scenes must be >= 1", evaluate, params, TINY, val_cache, val_cache, 0, 0)
+    refused("seed", evaluate, params, TINY, val_cache, val_cache, 2, -1)
+
+    options = SamplerOptions(location_temperature=np.float32(0.5), proposals=np.int64(5),
+                             heatmap_steps=[0, 5])
+    assert (options.location_temperature, options.proposals, options.heatmap_steps) == (
+        0.5, 5, (0, 5))
+    assert type(options.location_temperature) is float and type(options.proposals) is int
+    for steps in ((-1,), 3, (True,)):
+        refused("heatmap_steps must be integers >= 0", SamplerOptions, heatmap_steps=steps)
+
+    from scenegen_jax.data.sources import source_spec
+    from scenegen_jax.data.union import load_union
+    from scenegen_jax.eval.nll import summarize_by_source
+
+    for stride in (2.5, True, 0):
+        refused("stride must be an integer >= 1", source_spec, "av2", data_root, "val", stride)
+    assert len(load_union(pathlib.Path(val_cache.path))) == len(val_cache)
+    refused(f"scores of 2 scenes for a cache of {n}", summarize_by_source,
+            {"step_valid": np.zeros((2, 3), bool)}, val_cache)
+    refused(r"map_raster: shape \(48, 48, 15\)", render_scene, str(tmp_path / "x.png"),
+            val_cache.maps[0], TINY.map_channels, empty_actors(1), tree_take(egos, 0), TINY)
 
 
 # ----------------------------------------------------------------------------- CLI

@@ -142,7 +142,7 @@ def integer_in(least: int, below: int | None = None):
 positive_int = integer_in(1)  # argparse types
 nonnegative_int = integer_in(0)
 # A seed: JAX keys and numpy's generators take 32 bits; larger ones would wrap onto these.
-seed_int = integer_in(0, 2**32)
+seed_int = integer_in(0, 2**32)  # as `sampling.batch.seed_key` checks in the library
 
 
 def add_temperature_arg(sp) -> None:

@@ -347,14 +347,9 @@ class Cache:
         return f"{self.path}: {self.scene_ids[index]}"
 
     def check_config(self, cfg: Config) -> None:
-        """Raises if `cfg`'s grid does not match the grid the cache was prepared for."""
-        grid = (self.meta["grid_size"], self.meta["m_per_px"])
-        if grid != (cfg.grid_size, cfg.m_per_px):
-            raise ValueError(
-                f"{self.path}: cache prepared for grid {grid[0]} px at {grid[1]} m/px, but config "
-                f"{cfg.name!r} wants {cfg.grid_size} px at {cfg.m_per_px} m/px; re-run prepare "
-                f"with --config {cfg.name}"
-            )
+        """Raises naming the field if `cfg`'s grid or map channels are not the cache's
+        (`check_compatible`)."""
+        check_compatible([self], cfg)
 
 
 # What np.load raises on a truncated or damaged .npy / .npz: a header that is cut or no

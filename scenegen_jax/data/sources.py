@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import numbers
 import os
 from collections.abc import Iterator
 
@@ -30,11 +31,11 @@ def source_spec(kind: str, root: str, split: str | None = None, stride: int = DE
     """
     if kind not in SOURCES:
         raise ValueError(f"unknown source {kind!r}; choose one of {SOURCES}")
-    if stride < 1:
-        raise ValueError(f"stride must be >= 1, got {stride}")
+    if isinstance(stride, bool) or not isinstance(stride, numbers.Integral) or stride < 1:
+        raise ValueError(f"stride must be an integer >= 1, got {stride!r}")
     if kind == "av2" and split is None:
         split = "train"
-    return {"kind": kind, "root": os.path.abspath(root), "split": split, "stride": stride}
+    return {"kind": kind, "root": os.path.abspath(root), "split": split, "stride": int(stride)}
 
 
 def source_files(spec: dict) -> list[str]:

@@ -121,7 +121,8 @@ class CacheUnion:
 def load_union(paths: str | Sequence[str], cfg: Config | None = None) -> CacheUnion:
     """Opens one or several cache directories as a `CacheUnion` (checked against `cfg` with
     `check_compatible` when given)."""
-    paths = [paths] if isinstance(paths, str) else list(paths)
+    paths = [os.fspath(paths)] if isinstance(paths, str | os.PathLike) else [
+        os.fspath(p) for p in paths]
     real = [os.path.realpath(p) for p in paths]
     for i, p in enumerate(real):
         if p in real[:i]:

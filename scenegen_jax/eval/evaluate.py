@@ -19,7 +19,7 @@ from scenegen_jax.eval.mmd import mmd_table
 from scenegen_jax.eval.nll import score_cache, summarize_by_source, summarize_scores
 from scenegen_jax.eval.realism import realism_stats
 from scenegen_jax.raster.transform import scene_from_cached
-from scenegen_jax.sampling.batch import sample_scenes
+from scenegen_jax.sampling.batch import sample_scenes, seed_key
 from scenegen_jax.sampling.rollout import DEFAULT_OPTIONS, SamplerOptions
 
 log = logging.getLogger(__name__)
@@ -42,7 +42,7 @@ def sample_scenegen(params, cfg: Config, maps, scenes, seed: int, batch_size: in
                     options: SamplerOptions = DEFAULT_OPTIONS):
     """One SceneGen sample per conditioning scene (numpy Actors each); scene i is scene i of
     the request (`sampling.scene_key`), whatever the batch size."""
-    key = jax.random.key(seed)
+    key = seed_key(seed)
     out = []
     for start in tqdm(range(0, len(scenes), batch_size), desc="sample", unit="batch",
                       file=sys.stderr):
@@ -92,6 +92,10 @@ def evaluate(params, cfg: Config, cache: Cache, train_cache: Cache, num_scenes: 
     (`realism.realism_stats`) for every method and the real scenes on `num_scenes` scenes
     spread evenly over all of them; SceneGen samples with `options`. `cache` may be a
     `data.union.CacheUnion` of several caches (sources)."""
+    if num_scenes < 1:
+        raise ValueError(f"num_scenes must be >= 1, got {num_scenes}")
+    seed_key(seed)  # checked now, not after the scoring
+    train_cache.check_config(cfg)
     scores = score_cache(params, cache, cfg)
     nll = summarize_scores(scores)
     nll_by_source = summarize_by_source(scores, cache)

@@ -62,12 +62,19 @@ def score_cache(params, cache: Cache, cfg: Config, batch_size: int = 8, progress
       dict with per-step arrays over the scenes: term -> [S, T] NLL (nats), "step_valid"
       [S, T], "step_cls" [S, T] (STOP at the stop step).
     """
+    cache.check_config(cfg)
+    scenes = range(len(cache)) if scenes is None else scenes
+    if not isinstance(scenes, range) or scenes.step != 1 or not (
+            0 <= scenes.start < scenes.stop <= len(cache)):
+        raise ValueError(f"scenes {scenes}: a range of step 1 within range({len(cache)}), "
+                         "not empty, is needed")
+    if batch_size < 1 or (workers is not None and workers < 1):
+        raise ValueError(f"batch_size and workers must be >= 1, got {batch_size} and {workers}")
     mesh = make_mesh(jax.local_devices())  # with several processes: this one's devices
     workers = default_workers() if workers is None else workers
     per_call = max(batch_size // workers, 1) * mesh.size
     fn = _jitted_scorer(cfg.inference(), mesh)  # one program per model, not per run config
     params = jax.device_put(params, NamedSharding(mesh, P()))
-    scenes = range(len(cache)) if scenes is None else scenes
     n = scenes.stop
 
     def call(start):
@@ -125,7 +132,12 @@ def source_slices(cache) -> list[tuple[str, slice]]:
 
 
 def summarize_by_source(scores: dict, cache) -> dict:
-    """`summarize_scores` of each source (cache) of a `CacheUnion`, by its label."""
+    """`summarize_scores` of each source (cache) of a `CacheUnion`, by its label; `scores`
+    must hold every scene of `cache` (`score_cache` without `scenes`)."""
+    rows = len(scores["step_valid"])
+    if rows != len(cache):
+        raise ValueError(f"scores of {rows} scenes for a cache of {len(cache)}: every scene's "
+                         "are needed to split them by source")
     return {name: summarize_scores({k: v[s] for k, v in scores.items()})
             for name, s in source_slices(cache)}
 

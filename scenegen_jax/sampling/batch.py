@@ -47,6 +47,18 @@ def _fold_in_each(key: jax.Array, index: jax.Array) -> jax.Array:
     )
 
 
+SEED_LIMIT = 2**32  # jax.random.key keeps a seed's low 32 bits: others repeat a seed below
+
+
+def seed_key(seed: int) -> jax.Array:
+    """`jax.random.key(seed)` of an integer seed in [0, 2^32); any other seed is refused, as
+    JAX would give it the key of another seed (2^32 that of 0, -1 that of 2^32 - 1)."""
+    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or not (
+            0 <= seed < SEED_LIMIT):
+        raise ValueError(f"seed: an integer in [0, 2**32) is needed, got {seed!r}")
+    return jax.random.key(int(seed))
+
+
 def scene_key(key: jax.Array, index) -> jax.Array:
     """The key of scene `index` (int or int array) of a request made with `key`."""
     return _fold_in_each(key, jnp.asarray(index))
@@ -290,6 +302,15 @@ def sample_scenes(
       Sample with leading axes [B, S].
     """
     b = maps.shape[0]
+    h = cfg.grid_size
+    if maps.ndim != 4 or tuple(maps.shape[1:]) != (h, h, len(cfg.map_channels)):
+        raise ValueError(f"maps: shape {tuple(maps.shape)}, config {cfg.name!r} needs [B, {h}, "
+                         f"{h}, {len(cfg.map_channels)}] (a cache canvas is cropped first: "
+                         "`raster.transform.crop_map`)")
+    if np.shape(egos.cls)[:1] != (b,):
+        raise ValueError(f"egos: {np.shape(egos.cls)[:1]} rows for {b} maps")
+    if num_per_map < 1:
+        raise ValueError(f"num_per_map must be >= 1, got {num_per_map}")
     given, caps = batch_inputs(cfg, b, given, caps)
     return sample_split(scene_keys(key, b, num_per_map, first), params, maps, egos, given, caps,
                         cfg=cfg, options=options, model=model, workers=workers)
@@ -345,8 +366,21 @@ def sample_on_cache(
     scenes = range(num) if scenes is None else scenes
     if scenes.step != 1 or not 0 <= scenes.start <= scenes.stop <= num:
         raise ValueError(f"scenes {scenes} is not a contiguous part of range({num})")
-    indices = list(range(len(cache))) if indices is None else list(indices)
-    key = jax.random.key(seed)
+    cache.check_config(cfg)
+    key = seed_key(seed)
+    indices = list(range(len(cache))) if indices is None else [int(i) for i in indices]
+    if not indices or not all(0 <= i < len(cache) for i in indices):
+        raise ValueError(f"indices: {len(indices)} scene numbers, each in [0, {len(cache)}) "
+                         "of the cache, are needed")
+    if isinstance(given, Actors):
+        raise ValueError("given: a sequence of Actors, one set per scene (e.g. [actors])")
+    # Checked above, sampled below: a generator's body would run only when first iterated.
+    return _sample_on_cache(params, cfg, cache, key, scenes, indices, given, caps, batch_size,
+                            options)
+
+
+def _sample_on_cache(params, cfg: Config, cache, key, scenes: range, indices: list[int], given,
+                     caps, batch_size: int, options: SamplerOptions) -> Iterator[CacheScene]:
     crop = jax.jit(crop_map, static_argnums=2)
     maps: dict[int, np.ndarray] = {}
 

@@ -54,6 +54,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import numbers
 from typing import Any
 
 import jax
@@ -116,14 +117,24 @@ class SamplerOptions:
     location_temperature: float = 1.0
 
     def __post_init__(self):
+        # numpy scalars are taken as the Python numbers they hold (a hashable, static option).
         for name in ("proposals", "candidates", "rounds", "parallel"):
             v = getattr(self, name)
-            if v is not None and (not isinstance(v, int) or v < 1):
+            if v is not None and (isinstance(v, bool) or not isinstance(v, numbers.Integral)
+                                  or v < 1):
                 raise ValueError(f"sampler option {name} must be an integer >= 1, got {v!r}")
+            object.__setattr__(self, name, None if v is None else int(v))
         t = self.location_temperature
-        if isinstance(t, bool) or not isinstance(t, (int, float)) or not 0 < t < float("inf"):
+        if isinstance(t, bool) or not isinstance(t, numbers.Real) or not 0 < t < float("inf"):
             raise ValueError(f"sampler option location_temperature must be a number > 0, "
                              f"got {t!r}")
+        object.__setattr__(self, "location_temperature", float(t))
+        steps = self.heatmap_steps
+        if isinstance(steps, numbers.Number) or not all(
+                isinstance(k, numbers.Integral) and not isinstance(k, bool) and k >= 0
+                for k in steps):
+            raise ValueError(f"sampler option heatmap_steps must be integers >= 0, got {steps!r}")
+        object.__setattr__(self, "heatmap_steps", tuple(int(k) for k in steps))
 
 
 DEFAULT_OPTIONS = SamplerOptions()

@@ -47,7 +47,13 @@ def draw_scene(
     highlight: int | None = None,
     title: str | None = None,
 ) -> None:
-    """Draws one scene on `ax` in metres (ego frame)."""
+    """Draws one scene on `ax` in metres (ego frame); `map_raster` [H, W, len(channels)] is
+    the config's grid (a cache canvas is cropped first: `raster.transform.crop_map`)."""
+    h = cfg.grid_size
+    if tuple(np.shape(map_raster)) != (h, h, len(channels)):
+        raise ValueError(f"map_raster: shape {tuple(np.shape(map_raster))}, config {cfg.name!r} "
+                         f"needs [{h}, {h}, {len(channels)}] (a cache canvas is cropped first: "
+                         "`raster.transform.crop_map`)")
     half = cfg.region_m / 2
     ax.imshow(
         map_background(np.asarray(map_raster, np.float32), channels),
