@@ -700,7 +700,12 @@ def test_library_calls_check_their_arguments_before_any_work(val_cache, data_roo
     from scenegen_jax.eval.evaluate import evaluate
     from scenegen_jax.eval.nll import score_cache
     from scenegen_jax.model.network import init_params
-    from scenegen_jax.sampling.batch import sample_on_cache, sample_scenes, seed_key
+    from scenegen_jax.sampling.batch import (
+        sample_on_cache,
+        sample_scenes,
+        scene_keys,
+        seed_key,
+    )
     from scenegen_jax.scene import empty_actors, tree_take
     from scenegen_jax.viz.render import render_scene
 
@@ -731,6 +736,12 @@ def test_library_calls_check_their_arguments_before_any_work(val_cache, data_roo
             np.concatenate([cropped, cropped[:1]]), egos)
     refused("num_per_map must be >= 1", sample_scenes, jax.random.key(0), params, TINY,
             cropped, egos, num_per_map=0)
+    for caps in ([-1, 5, 5], [1, 1], [1.5, 2, 2]):
+        refused("caps: integers >= 0 of shape", sample_scenes, jax.random.key(0), params, TINY,
+                cropped, egos, caps=caps)
+    # A legacy uint32 key (jax.random.PRNGKey) is the same key as jax.random.key's.
+    assert np.array_equal(jax.random.key_data(scene_keys(jax.random.PRNGKey(3), 2, 2)),
+                          jax.random.key_data(scene_keys(jax.random.key(3), 2, 2)))
 
     refused("field grid_size", score_cache, params, val_cache, cpu)
     n = len(val_cache)

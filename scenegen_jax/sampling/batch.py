@@ -60,7 +60,10 @@ def seed_key(seed: int) -> jax.Array:
 
 
 def scene_key(key: jax.Array, index) -> jax.Array:
-    """The key of scene `index` (int or int array) of a request made with `key`."""
+    """The key of scene `index` (int or int array) of a request made with `key` (a typed key,
+    `jax.random.key`; a legacy uint32 [2] key of `jax.random.PRNGKey` is the same key)."""
+    if not jax.dtypes.issubdtype(jnp.asarray(key).dtype, jax.dtypes.prng_key):
+        key = jax.random.wrap_key_data(jnp.asarray(key, jnp.uint32))
     return _fold_in_each(key, jnp.asarray(index))
 
 
@@ -261,6 +264,10 @@ def batch_inputs(cfg: Config, num_maps: int, given: Actors | None = None, caps=N
             given = jax.tree.map(lambda x: jnp.broadcast_to(x, (num_maps, *x.shape)), given)
         given = jax.vmap(lambda g: pad_given(g, n))(given)
     caps = np.full((NUM_CLASSES,), n) if caps is None else np.asarray(caps)
+    if caps.shape not in ((NUM_CLASSES,), (num_maps, NUM_CLASSES)) or not (
+            np.issubdtype(caps.dtype, np.integer) and (caps >= 0).all()):
+        raise ValueError(f"caps: integers >= 0 of shape [{NUM_CLASSES}] or [{num_maps}, "
+                         f"{NUM_CLASSES}] (one per class) are needed, got {caps.tolist()}")
     return given, np.broadcast_to(caps.astype(np.int32), (num_maps, NUM_CLASSES))
 
 
