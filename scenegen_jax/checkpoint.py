@@ -33,6 +33,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 
 from scenegen_jax.backend import is_main_process, sync_processes
+from scenegen_jax.files import written_whole
 from scenegen_jax.jsonfile import read_json
 
 log = logging.getLogger(__name__)
@@ -127,9 +128,8 @@ class Checkpointer:
             if is_main_process():
                 folder = os.path.join(self.directory, str(step))
                 path = os.path.join(folder, CHECKSUM_FILE)
-                with open(path + ".tmp", "w") as f:
+                with written_whole(path) as tmp, open(tmp, "w") as f:
                     json.dump({**tree_checksums(entries), **file_checksums(folder)}, f)
-                os.replace(path + ".tmp", path)
             sync_processes(f"checksums of step {step} written")
         return saved
 

@@ -14,7 +14,7 @@ PACKAGE = os.path.join(REPO, "scenegen_jax")
 # lower layers. So the training code (`train`) is imported by the CLI alone: a scene's
 # likelihood, sampling and evaluation only need parameters.
 LAYERS = (
-    ("jsonfile",),
+    ("jsonfile", "files"),
     ("config", "allocator", "backend"),
     ("scene", "vector_map"),
     ("frame", "geometry"),

@@ -1,12 +1,11 @@
 """What several subcommands share: `--set FIELD=VALUE` overrides, the model of
-`--pretrained NAME|DIR` or `--workdir` (`--step`), output files checked before the work and
-written whole or not at all, and multi-process runs (`--distributed`) with the merge of the
+`--pretrained NAME|DIR` or `--workdir` (`--step`), output files checked before the work,
+and multi-process runs (`--distributed`) with the merge of the
 processes' parts of an output."""
 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
 
 
@@ -38,24 +37,6 @@ def check_output(flag: str, path: str, folder: bool = False) -> None:
         raise ValueError(f"{flag} {path}: cannot make the folder {where} ({e.strerror})") from e
     if not os.access(where, os.W_OK):
         raise ValueError(f"{flag} {path}: the folder {where} is not writable")
-
-
-@contextlib.contextmanager
-def written_whole(path: str):
-    """Yields a temporary path beside `path` to write; renames it to `path` when the block
-    ends and removes it when the block fails, so an interrupted or failed write (a full
-    disk, Ctrl-C) leaves no partial `path` that looks complete. An OSError names `path`."""
-    tmp = f"{path}.tmp"
-    try:
-        yield tmp
-        os.replace(tmp, path)
-    except OSError as e:
-        if e.filename is not None:  # names its own file
-            raise
-        raise OSError(e.errno, f"{path}: {e.strerror or e}") from e
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
 
 
 def load_model(args):

@@ -20,9 +20,9 @@ from scenegen_jax.cli.common import (
     positive_int,
     seed_int,
     start_distributed,
-    written_whole,
 )
 from scenegen_jax.config import Config
+from scenegen_jax.files import written_whole
 
 # Best-of-M proposals at most (the paper's ablation goes to 20): memory grows with M.
 MAX_PROPOSALS = 1000

@@ -19,8 +19,8 @@ from scenegen_jax.cli.common import (
     positive_int,
     seed_int,
     start_distributed,
-    written_whole,
 )
+from scenegen_jax.files import written_whole
 
 
 def cmd_score(args) -> None:

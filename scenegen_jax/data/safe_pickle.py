@@ -17,12 +17,13 @@ import importlib
 import os
 import pickle
 import struct
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from scenegen_jax.files import written_whole
 
 
 class UnsafePickleError(ValueError):
@@ -152,18 +153,11 @@ def load_pickle(path: str | os.PathLike) -> Any:
 
 
 def dump_pickle(obj: Any, path: str | os.PathLike, protocol: int = 4) -> None:
-    """Writes `obj` atomically (temp file + rename), creating parent directories.
+    """Writes `obj` whole or not at all (`files.written_whole`), creating parent directories.
 
     Protocol 4 is what ScenarioNet writes (Python's default) and what Python >= 3.4 reads.
     """
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            pickle.dump(obj, f, protocol=protocol)
-        os.replace(tmp, target)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with written_whole(os.fspath(target)) as tmp, open(tmp, "wb") as f:
+        pickle.dump(obj, f, protocol=protocol)

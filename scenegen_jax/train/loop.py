@@ -22,6 +22,7 @@ from scenegen_jax.config import Config
 from scenegen_jax.data.cache import actors_in_region
 from scenegen_jax.data.union import CacheUnion, load_union
 from scenegen_jax.distributions import TERMS
+from scenegen_jax.files import written_whole
 from scenegen_jax.jsonfile import read_json
 from scenegen_jax.likelihood.batch import check_batch, gather_batch, local_rows, to_device
 from scenegen_jax.likelihood.terms import VEHICLE_TERMS
@@ -52,9 +53,8 @@ def _write_atomic(path: str, text: str) -> None:
     """Writes `text` to `path` whole or not at all (other processes may read it meanwhile);
     in a multi-process job only process 0 writes."""
     if is_main_process():
-        with open(path + ".tmp", "w") as f:
+        with written_whole(path) as tmp, open(tmp, "w") as f:
             f.write(text)
-        os.replace(path + ".tmp", path)
 
 
 def save_or_check_config(workdir: str, cfg: Config) -> None:
@@ -133,9 +133,8 @@ def drop_metrics_after(path: str, step: int) -> None:
     if len(keep) != len(lines):
         log.info("%s: dropping %d rows after step %d (replayed)", path, len(lines) - len(keep),
                  step)
-        with open(path + ".tmp", "w") as f:
+        with written_whole(path) as tmp, open(tmp, "w") as f:
             f.writelines(keep)
-        os.replace(path + ".tmp", path)
 
 
 def summarize(stats: dict) -> dict:

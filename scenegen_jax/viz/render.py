@@ -11,6 +11,7 @@ import numpy as np  # noqa: E402
 from matplotlib.patches import Polygon  # noqa: E402
 
 from scenegen_jax.config import Config  # noqa: E402
+from scenegen_jax.files import written_whole  # noqa: E402
 from scenegen_jax.geometry import box_corners  # noqa: E402
 from scenegen_jax.scene import BICYCLIST, PEDESTRIAN, VEHICLE, Actors  # noqa: E402
 
@@ -117,5 +118,6 @@ def render_scene(path: str, *args, dpi: int = 120, **kwargs) -> None:
     fig, ax = plt.subplots(figsize=(6, 6))
     draw_scene(ax, *args, **kwargs)
     fig.tight_layout()
-    fig.savefig(path, dpi=dpi)
+    with written_whole(path) as tmp:  # no truncated PNG from a full disk or an interrupt
+        fig.savefig(tmp, dpi=dpi, format="png")
     plt.close(fig)

@@ -1,0 +1,46 @@
+"""Output files written whole or not at all (`scenegen_jax.files.written_whole`)."""
+
+from __future__ import annotations
+
+import errno
+import os
+import stat
+
+import pytest
+
+from scenegen_jax.data.safe_pickle import dump_pickle, load_pickle
+from scenegen_jax.files import written_whole
+
+
+def test_a_failed_write_leaves_the_earlier_file_and_no_temporary(tmp_path):
+    path = tmp_path / "out.json"
+    with written_whole(str(path)) as tmp, open(tmp, "w") as f:
+        f.write("first")
+    assert path.read_text() == "first"
+    for stop in (KeyboardInterrupt, RuntimeError):
+        with pytest.raises(stop), written_whole(str(path)) as tmp, open(tmp, "w") as f:
+            f.write("cut sh")
+            raise stop
+        assert path.read_text() == "first" and os.listdir(tmp_path) == ["out.json"]
+
+
+def test_an_os_error_without_a_file_names_the_output(tmp_path):
+    path = str(tmp_path / "scores.csv")
+    with pytest.raises(OSError, match=f"{path}: No space left on device") as e, \
+            written_whole(path):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))  # as a write() on a full disk
+    assert e.value.errno == errno.ENOSPC and os.listdir(tmp_path) == []
+    missing = str(tmp_path / "missing.part")
+    with pytest.raises(FileNotFoundError, match="missing.part"), written_whole(path):
+        open(missing).close()  # an error naming its own file keeps its message
+
+
+def test_exported_pickles_get_the_umasks_permissions(tmp_path):
+    """ScenarioNet files are readable as any file the user writes (a private temporary file
+    renamed into place had made them 0600)."""
+    plain = tmp_path / "plain"
+    plain.write_bytes(b"")
+    dump_pickle({"id": "a"}, tmp_path / "sd_a.pkl")
+    assert load_pickle(tmp_path / "sd_a.pkl") == {"id": "a"}
+    mode = stat.S_IMODE
+    assert mode(os.stat(tmp_path / "sd_a.pkl").st_mode) == mode(os.stat(plain).st_mode)
