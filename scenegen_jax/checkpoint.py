@@ -128,8 +128,9 @@ class Checkpointer:
             if is_main_process():
                 folder = os.path.join(self.directory, str(step))
                 path = os.path.join(folder, CHECKSUM_FILE)
+                sums = {**tree_checksums(entries), **file_checksums(folder)}  # before the file
                 with written_whole(path) as tmp, open(tmp, "w") as f:
-                    json.dump({**tree_checksums(entries), **file_checksums(folder)}, f)
+                    json.dump(sums, f)
             sync_processes(f"checksums of step {step} written")
         return saved
 

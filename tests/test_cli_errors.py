@@ -79,7 +79,7 @@ def _outputs_under_a_file(command):
     """`command` with its output file under a regular file: refused before any model work."""
     def case(tmp_path, cache, data_root):
         (tmp_path / "a_file").write_text("")
-        out = str(tmp_path / "a_file" / "out")
+        out = str(tmp_path / "a_file" / ("out.npz" if command == "actors-out" else "out"))
         argv = {
             "score": ["score", "--pretrained", "cpu-av2-womd", "--data", cache, "--out", out],
             "actors-out": ["score", "--pretrained", "cpu-av2-womd", "--data", cache, "--out",

@@ -15,6 +15,7 @@ from scenegen_jax.files import written_whole
 def test_a_failed_write_leaves_the_earlier_file_and_no_temporary(tmp_path):
     path = tmp_path / "out.json"
     with written_whole(str(path)) as tmp, open(tmp, "w") as f:
+        assert tmp.endswith(".json") and tmp != str(path)  # the format's extension kept
         f.write("first")
     assert path.read_text() == "first"
     for stop in (KeyboardInterrupt, RuntimeError):
@@ -26,10 +27,15 @@ def test_a_failed_write_leaves_the_earlier_file_and_no_temporary(tmp_path):
 
 def test_an_os_error_without_a_file_names_the_output(tmp_path):
     path = str(tmp_path / "scores.csv")
-    with pytest.raises(OSError, match=f"{path}: No space left on device") as e, \
-            written_whole(path):
+    with pytest.raises(OSError, match="No space left on device") as e, written_whole(path):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))  # as a write() on a full disk
-    assert e.value.errno == errno.ENOSPC and os.listdir(tmp_path) == []
+    assert e.value.errno == errno.ENOSPC and e.value.filename == path
+    assert os.listdir(tmp_path) == []
+    # Nested: the inner file is the one named, not the outer output.
+    inner = str(tmp_path / "png" / "a.png")
+    with pytest.raises(OSError) as e, written_whole(path), written_whole(inner):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    assert e.value.filename == inner
     missing = str(tmp_path / "missing.part")
     with pytest.raises(FileNotFoundError, match="missing.part"), written_whole(path):
         open(missing).close()  # an error naming its own file keeps its message
@@ -44,3 +50,18 @@ def test_exported_pickles_get_the_umasks_permissions(tmp_path):
     assert load_pickle(tmp_path / "sd_a.pkl") == {"id": "a"}
     mode = stat.S_IMODE
     assert mode(os.stat(tmp_path / "sd_a.pkl").st_mode) == mode(os.stat(plain).st_mode)
+
+
+def test_figures_keep_the_format_of_their_name(tmp_path):
+    """Rendered through a temporary file, an image is still in the format its name asks for,
+    and a name without an extension still gets `.png`, as matplotlib gives it."""
+    import matplotlib.pyplot as plt
+
+    from scenegen_jax.viz.render import save_figure
+
+    for name, head in (("a", b"\x89PNG"), ("b.png", b"\x89PNG"), ("c.svg", b"<?xml")):
+        fig = plt.figure(figsize=(1, 1))
+        save_figure(fig, str(tmp_path / name), dpi=20)
+        path = tmp_path / (name if "." in name else f"{name}.png")
+        assert path.read_bytes().startswith(head), name
+    assert sorted(os.listdir(tmp_path)) == ["a.png", "b.png", "c.svg"]

@@ -52,18 +52,19 @@ def enable_compile_cache() -> str | None:
     return jax.config.jax_compilation_cache_dir
 
 
-def start_jax(distributed: bool) -> None:
-    """Sets JAX's process-wide switches as the package needs them and starts its backend, so
-    that a JAX_PLATFORMS naming a backend this machine lacks is one line of error, not a
-    traceback. A `--distributed` run's backend starts when it joins the job
-    (`jax.distributed.initialize` must come first)."""
+def start_jax(backend: bool) -> None:
+    """Sets JAX's process-wide switches as the package needs them and, with `backend`, starts
+    JAX's backend, so that a JAX_PLATFORMS naming one this machine lacks is one line of
+    error, not a traceback. Only the commands that compute with JAX start it (`prepare` on a
+    GPU node takes no accelerator memory), and not a `--distributed` run: its backend starts
+    when it joins the job (`jax.distributed.initialize` must come first)."""
     import jax
 
     # float32 throughout: JAX_ENABLE_X64=1 would make new arrays float64 and the convolutions
     # refuse the mix. numpy's broadcasting: JAX_NUMPY_RANK_PROMOTION=raise would refuse it.
     jax.config.update("jax_enable_x64", False)
     jax.config.update("jax_numpy_rank_promotion", "allow")
-    if distributed:
+    if not backend:
         return
     try:
         jax.devices()
@@ -81,7 +82,10 @@ def main(argv: list[str] | None = None) -> None:
             print(f"scenegen: {e}", file=sys.stderr)
             raise SystemExit(2) from e
     args = build_parser().parse_args(argv)
-    from scenegen_jax.cli import model, sample, score
+    from scenegen_jax.cli import data, model, sample, score
+
+    compiles = (model.cmd_train, score.cmd_score, sample.cmd_sample, score.cmd_evaluate)
+    computes = (*compiles, model.cmd_models, model.cmd_export_model, data.cmd_render)
 
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
@@ -90,8 +94,8 @@ def main(argv: list[str] | None = None) -> None:
     for noisy in ("jax", "absl", "matplotlib", "orbax"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
     try:
-        start_jax(getattr(args, "distributed", False))
-        if args.func in (model.cmd_train, score.cmd_score, sample.cmd_sample, score.cmd_evaluate):
+        start_jax(args.func in computes and not getattr(args, "distributed", False))
+        if args.func in compiles:
             enable_compile_cache()
         args.func(args)
     except KeyboardInterrupt:

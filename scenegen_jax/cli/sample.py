@@ -161,8 +161,9 @@ def merge_sample_parts(out: str, parts: list[str]) -> dict[str, int]:
                     names.append(scenario_file_name({"id": row["scene"]}))
                     for r in row["actors"]:
                         counts[r["class"]] += 1
-            os.remove(part)
-    index_dataset(os.path.join(out, "scenarionet"), names)
+        index_dataset(os.path.join(out, "scenarionet"), names)
+    for part in parts:  # merged: only now are they not needed
+        os.remove(part)
     return counts
 
 

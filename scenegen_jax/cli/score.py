@@ -42,6 +42,8 @@ def cmd_score(args) -> None:
         raise ValueError("--top-k K needs --render DIR")
     check_output("--out", args.out)  # found now, not after the scoring
     if args.actors_out:
+        if not args.actors_out.endswith(".npz"):  # as np.savez names it
+            args.actors_out += ".npz"
         check_output("--actors-out", args.actors_out)
     if args.render:
         check_output("--render", args.render, folder=True)

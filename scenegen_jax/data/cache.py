@@ -30,6 +30,7 @@ from collections.abc import Iterable, Sequence
 import numpy as np
 
 from scenegen_jax.config import Config
+from scenegen_jax.files import written_whole
 from scenegen_jax.frame import Frame
 from scenegen_jax.jsonfile import read_json
 from scenegen_jax.raster.map import ALL_MAP_CHANNELS, rasterize_map
@@ -201,15 +202,12 @@ class CacheWriter:
         s.empty_scenes += int(not any(enc.inside.values()))
 
     def close(self, drops: collections.Counter) -> Summary:
-        """Writes actors.npz and meta.json (with `drops` as the summary's dropped rows)."""
+        """Writes actors.npz and meta.json (with `drops` as the summary's dropped rows). Every
+        file is written in full before any is renamed into place (maps, actors, meta.json
+        last), so a cache already in the directory is replaced only by a whole one."""
         if not self.ids:
             raise ValueError(f"{self.out_dir}: no scenes to write")
-        self.maps.close()
         self.summary.dropped = dict(sorted(drops.items()))
-        np.savez(
-            os.path.join(self.out_dir, "actors.npz"),
-            **{k: np.stack(v) for k, v in self.arrays.items()},
-        )
         meta = {
             "version": CACHE_VERSION,
             "grid_size": self.cfg.grid_size,
@@ -222,8 +220,13 @@ class CacheWriter:
             "summary": self.summary.to_dict(),
             "source": self.source,
         }
-        with open(os.path.join(self.out_dir, "meta.json"), "w") as f:
-            json.dump(meta, f, indent=1)
+        with (written_whole(os.path.join(self.out_dir, "meta.json")) as meta_tmp,
+              written_whole(os.path.join(self.out_dir, "actors.npz")) as actors_tmp):
+            with open(actors_tmp, "wb") as f:
+                np.savez(f, **{k: np.stack(v) for k, v in self.arrays.items()})
+            with open(meta_tmp, "w") as f:
+                json.dump(meta, f, indent=1)
+            self.maps.close()
         return self.summary
 
 

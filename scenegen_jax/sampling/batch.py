@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import numbers
 from collections.abc import Iterator, Sequence
 from typing import Any
 
@@ -375,13 +376,16 @@ def sample_on_cache(
         raise ValueError(f"scenes {scenes} is not a contiguous part of range({num})")
     cache.check_config(cfg)
     key = seed_key(seed)
-    indices = list(range(len(cache))) if indices is None else [int(i) for i in indices]
-    if not indices or not all(0 <= i < len(cache) for i in indices):
-        raise ValueError(f"indices: {len(indices)} scene numbers, each in [0, {len(cache)}) "
-                         "of the cache, are needed")
+    indices = list(range(len(cache))) if indices is None else list(indices)
+    if not indices or not all(isinstance(i, numbers.Integral) and not isinstance(i, bool)
+                              and 0 <= i < len(cache) for i in indices):
+        raise ValueError(f"indices: {len(indices)} scene numbers, each an integer in "
+                         f"[0, {len(cache)}) of the cache, are needed")
+    indices = [int(i) for i in indices]
     if isinstance(given, Actors):
         raise ValueError("given: a sequence of Actors, one set per scene (e.g. [actors])")
-    # Checked above, sampled below: a generator's body would run only when first iterated.
+    # Checked above (the caps by each batch's `sample_scenes`), sampled below: a generator's
+    # body would run only when first iterated.
     return _sample_on_cache(params, cfg, cache, key, scenes, indices, given, caps, batch_size,
                             options)
 

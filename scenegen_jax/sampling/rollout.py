@@ -130,6 +130,7 @@ class SamplerOptions:
                              f"got {t!r}")
         object.__setattr__(self, "location_temperature", float(t))
         steps = self.heatmap_steps
+        steps = steps if isinstance(steps, numbers.Number) else tuple(steps)  # a generator once
         if isinstance(steps, numbers.Number) or not all(
                 isinstance(k, numbers.Integral) and not isinstance(k, bool) and k >= 0
                 for k in steps):

@@ -12,9 +12,8 @@ import numpy as np  # noqa: E402
 from matplotlib.colors import PowerNorm  # noqa: E402
 
 from scenegen_jax.config import Config  # noqa: E402
-from scenegen_jax.files import written_whole  # noqa: E402
 from scenegen_jax.scene import CLASS_NAMES, Actors  # noqa: E402
-from scenegen_jax.viz.render import draw_scene  # noqa: E402
+from scenegen_jax.viz.render import draw_scene, save_figure  # noqa: E402
 
 
 def render_heatmaps(
@@ -90,9 +89,7 @@ def render_heatmaps(
     if title:
         fig.suptitle(title, fontsize=9)
     fig.tight_layout()
-    with written_whole(path) as tmp:  # no truncated PNG from a full disk or an interrupt
-        fig.savefig(tmp, dpi=dpi, format="png")
-    plt.close(fig)
+    save_figure(fig, path, dpi)
     return len(rows)
 
 

@@ -3,6 +3,8 @@ bicyclists green; boxes with heading ticks and velocity arrows."""
 
 from __future__ import annotations
 
+import os
+
 import matplotlib
 
 matplotlib.use("Agg")
@@ -113,11 +115,20 @@ def draw_scene(
         ax.set_title(title, fontsize=8)
 
 
+def save_figure(fig, path: str, dpi: int) -> None:
+    """Saves and closes `fig`, whole or not at all (`files.written_whole`: no truncated image
+    from a full disk or an interrupt), in the format of the name's extension (without one,
+    PNG with `.png` appended, as matplotlib does)."""
+    if not os.path.splitext(path)[1]:
+        path += ".png"
+    with written_whole(path) as tmp:
+        fig.savefig(tmp, dpi=dpi)
+    plt.close(fig)
+
+
 def render_scene(path: str, *args, dpi: int = 120, **kwargs) -> None:
-    """Renders `draw_scene(*args, **kwargs)` to a PNG file."""
+    """Renders `draw_scene(*args, **kwargs)` to an image file (PNG by default)."""
     fig, ax = plt.subplots(figsize=(6, 6))
     draw_scene(ax, *args, **kwargs)
     fig.tight_layout()
-    with written_whole(path) as tmp:  # no truncated PNG from a full disk or an interrupt
-        fig.savefig(tmp, dpi=dpi, format="png")
-    plt.close(fig)
+    save_figure(fig, path, dpi)
