@@ -38,6 +38,18 @@ def cmd_train(args) -> None:
         print(json.dumps({"workdir": args.workdir, "step": int(state.step)}))
 
 
+def cmd_reproduce(args) -> None:
+    from scenegen_jax.backend import is_main_process
+    from scenegen_jax.recipes import get_recipe
+    from scenegen_jax.train.recipe import run_recipe
+
+    recipe = get_recipe(args.recipe)
+    done = run_recipe(recipe, args.workdir, args.cache_dir, args.data_root, runs=args.run,
+                      out=args.out)
+    if is_main_process():
+        print(json.dumps({"recipe": recipe.name, "runs": done, "out": args.out}))
+
+
 def cmd_export_model(args) -> None:
     from scenegen_jax.pretrained import save_pretrained
     from scenegen_jax.workdir import load_params
@@ -89,6 +101,20 @@ def add_parsers(sub) -> None:
     add_distributed_args(sp, "training")
     sp.add_argument("--set", nargs="*", metavar="FIELD=VALUE", help="config overrides")
     sp.set_defaults(func=cmd_train)
+
+    sp = sub.add_parser("reproduce", help="train a shipped model's recipe from scratch, "
+                        "resuming where it stopped")
+    sp.add_argument("recipe", help="recipe name (`scenegen_jax/recipes.py`), e.g. cpu-av2-womd")
+    sp.add_argument("--workdir", required=True,
+                    help="one workdir per run and phase: WORKDIR/RUN/PHASE")
+    sp.add_argument("--cache-dir", default="runs", help="where the recipe's caches are "
+                    "prepared when missing (default: runs)")
+    sp.add_argument("--data-root", default="../shared/data",
+                    help="the folder holding the recipe's data sets (default: ../shared/data)")
+    sp.add_argument("--run", nargs="+", metavar="RUN",
+                    help="train only these runs of the recipe (default: all, in order)")
+    sp.add_argument("--out", help="export the recipe's model here when its run is done")
+    sp.set_defaults(func=cmd_reproduce)
 
     sp = sub.add_parser("export-model", help="write a workdir's parameters as a pretrained model")
     sp.add_argument("--workdir", required=True)
