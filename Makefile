@@ -16,12 +16,9 @@ $(VENV)/.installed: pyproject.toml
 	$(BIN)/pip install -q -e '.[test]'
 	touch $@
 
-# Three pytest workers on the 2-core machines we test on, each taking whole modules in
-# collection order so that module fixtures are built once: with two (one per core) the
-# cores idled about a tenth of the time (single-threaded imports and tracing, waits on files,
-# the last module's tail). Session 46, slow Xeon, two pairs an hour apart: two workers 892
-# and 963 s at 191 and 188 % CPU, three 804 and 917 s at 197 and 192 %.
-# TEST_WORKERS=0 runs the suite in this process. The suite's wall time is printed at the end.
+# Three pytest workers on two cores, each taking whole modules in collection order so that
+# module fixtures are built once: the third keeps both cores busy while one worker waits on
+# single-threaded imports, tracing or files. TEST_WORKERS=0 runs the suite in this process.
 TEST_WORKERS ?= 3
 
 test: install
@@ -36,7 +33,7 @@ fuzz: install
 	HYPOTHESIS_PROFILE=fuzz $(BIN)/python -m pytest -q tests/test_fuzz.py
 
 lint: install
-	$(BIN)/ruff check scenegen_jax tests experiments
+	$(BIN)/ruff check scenegen_jax tests experiments bench
 
 demo: install
 	bash experiments/demo.sh $(DATA) $(OUT) $(DEMO_CONFIG)
@@ -44,6 +41,8 @@ demo: install
 clean:
 	rm -rf $(OUT) .pytest_cache
 
-# `make bench ISA=AVX2` caps both sides to AVX2 (bench/results_avx2.json).
+# `make bench ISA=AVX2` caps both sides to AVX2 (bench/results_avx2.json). The `cpu` model's
+# sampling on real maps is timed only where runs/cpu_map holds a trained `cpu` workdir and
+# runs/cache_cpu_val its val cache; otherwise its row says it was skipped (bench/README.md).
 bench: install
 	$(BIN)/python bench/run.py --workdir runs/cpu_map --data runs/cache_cpu_val $(if $(ISA),--isa $(ISA))

@@ -1,4 +1,4 @@
-/* An AVX2-only CPU on a wider x86 one, for `bench/run.py --isa AVX2` (issue 26).
+/* An AVX2-only CPU on a wider x86 one, for `bench/run.py --isa AVX2`.
 
    Loaded with LD_PRELOAD, it makes the CPUID instruction fault in this process and every
    thread and child it starts (Linux's ARCH_SET_CPUID, where the CPU supports CPUID faulting:
@@ -6,8 +6,8 @@
    with the AVX-512, AMX, AVX-VNNI and AVX10 bits cleared. Every library that picks its
    kernels from CPUID at run time then picks its AVX2 ones: YNNPACK (through cpuinfo), oneDNN,
    XLA's LLVM host features, PyTorch's ATen dispatch. XLA_FLAGS' --xla_cpu_max_isa caps only
-   the code XLA generates, and ONEDNN_MAX_CPU_ISA only oneDNN (bench/README.md, sessions 24
-   and 38).
+   the code XLA generates, and ONEDNN_MAX_CPU_ISA only oneDNN, and neither reaches YNNPACK
+   (docs/performance.md).
 
    What it cannot reach: code that chose its ISA before this library's constructor ran (the
    dynamic loader's and glibc's string functions), and XCR0 (xgetbv still reports the

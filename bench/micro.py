@@ -1,14 +1,14 @@
-"""Micro-benchmarks behind bench/README.md's "Session 11 levers": single operations at the
+"""Micro-benchmarks of the training step's hot operations: single operations at the
 paper's width (hidden 32) and grid 128, B 1, on XLA:CPU. Run alone on an idle machine:
 
     .venv/bin/python bench/micro.py            # prints one line per operation (median ms)
 
 - GroupNorm (8 groups), forward and forward + backward: `model.network.group_norm` against
-  the same statistics reduced over the grouped 5-D view (the code before session 11);
+  the same statistics reduced over the grouped 5-D view (the plain formulation);
 - convolutions 3x3 32 -> 32 and 5x5 32 -> 128: forward, input gradient and weight gradient,
   with XLA's default (YNNPACK) and with `scoring_compiler_options()` (Eigen);
 - the 5x5 32 -> 128 weight gradient at grids 128 and 320: XLA's, and summed over row bands
-  of the size `conv` uses on this CPU (`backend.weight_gradient_bands`; sessions 23-24).
+  of the size `conv` uses on this CPU (`backend.weight_gradient_bands`).
 """
 
 from __future__ import annotations

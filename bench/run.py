@@ -496,9 +496,10 @@ def cpu_ours(args) -> list[dict]:
     rows += ours("train", steps=25, batch=4, runs=r, **cpu)
     rows += ours("score", steps=25, batch=8, runs=r, **cpu)
     if args.workdir and not os.path.isdir(os.path.join(args.workdir, "checkpoints")):
-        rows.append({"what": "skipped", "reason": f"{args.workdir}: no trained model; train "
-                     "the cpu model (experiments/results/README.md, 'Training budget': "
-                     "runs/cpu_map and runs/cache_cpu_val) to time its sampling"})
+        rows.append({"what": "skipped", "reason": f"{args.workdir}: no trained model; give "
+                     "--workdir a `scenegen train --config cpu` workdir and --data a cpu-config "
+                     "val cache (`scenegen prepare ... --split val --config cpu`) to time its "
+                     "sampling on real maps"})
     elif args.workdir:
         for b in (1, 32):
             rows += ours("sample", batch=b, runs=big, workdir=args.workdir, data=args.data,
@@ -619,7 +620,7 @@ def cap_isa(isa: str) -> None:
     (bench/avx2_only.c, preloaded), so YNNPACK, oneDNN, PyTorch's ATen and XLA's code
     generator all pick their AVX2 kernels; XLA's own cap besides (LLVM may also read the CPU's
     model). `--xla_cpu_max_isa` and `ONEDNN_MAX_CPU_ISA` alone leave YNNPACK at the CPU's
-    widest ISA (bench/README.md, sessions 24 and 38). Nothing to hide on an AVX2-only CPU."""
+    widest ISA (docs/performance.md). Nothing to hide on an AVX2-only CPU."""
     if cpu_isa() == isa:
         return
     if "cpuid_fault" not in cpu_flags():

@@ -1,4 +1,4 @@
-"""Ablations of the paper's Table 3 / Figure 6 at the `cpu` config (issue 6).
+"""Ablations of the paper's Table 3 / Figure 6 at the `cpu` config.
 
 Sweeps:
   mixtures    K in {1, 3, 5, 10}                       (trained, val NLL)
@@ -15,7 +15,7 @@ seed 0. One member per call, so two members can train side by side, one per core
   .venv/bin/python experiments/ablations.py sample proposals 10 --workdir runs/cpu_map
   .venv/bin/python experiments/ablations.py report mixtures      # table + plot
 
-A member already trained elsewhere with the same settings (e.g. the issue-4 models) is
+A member already trained elsewhere with the same settings (e.g. a map / no-map pair) is
 brought in with `adopt SWEEP VALUE SUMMARY.json --steps N`, which records where it came from.
 Results: experiments/results/ablations/SWEEP_VALUE.json, experiments/results/ablation_SWEEP.md
 and .png.

@@ -33,9 +33,11 @@ echo "== 5. sample scenes on validation maps"
 $BIN/scenegen sample --workdir "$OUT/model" --data "$OUT/cache_val" --num 8 --out "$OUT/samples" \
     --heatmaps
 
-PRETRAINED=$($BIN/scenegen models | head -n 1 | cut -f 1)
+# `scenegen models` prints one line per shipped model: "NAME<TAB>config CONFIG, grid ...".
+MODEL_LINE=$($BIN/scenegen models | head -n 1)
+PRETRAINED=$(printf '%s\n' "$MODEL_LINE" | cut -f 1)
 if [ -n "$PRETRAINED" ]; then
-    PCONFIG=$($BIN/python -c "from scenegen_jax.pretrained import load_pretrained as l; print(l('$PRETRAINED')[0].name)")
+    PCONFIG=$(printf '%s\n' "$MODEL_LINE" | cut -f 2 | sed -n 's/^config \([^,]*\),.*/\1/p')
     echo "== 6. pretrained model $PRETRAINED ($PCONFIG config): val caches of Argoverse 2 and Waymo"
     $BIN/scenegen prepare --source av2 --root "$DATA" --split val --out "$OUT/pre_av2_val" \
         --config "$PCONFIG" --stride 10

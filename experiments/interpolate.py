@@ -2,15 +2,15 @@
 2022): writes, for each `--alpha` a, a pretrained model directory whose parameters are
 (1 - a) * START + a * TUNED, leaf by leaf, for `scenegen score/sample/evaluate --pretrained DIR`.
 
-    .venv/bin/python experiments/interpolate.py --start experiments/pretrained_run \
-        --tuned runs/ema70 --alpha 0.25 0.5 0.75 --out runs/wise_map
+    .venv/bin/python experiments/interpolate.py --start runs/base \
+        --tuned runs/finetune --alpha 0.25 0.5 0.75 --out runs/wise
 
-writes runs/wise_map/a0.25/ and so on; `--keep NAME ...` takes those top-level parameters
+writes runs/wise/a0.25/ and so on; `--keep NAME ...` takes those top-level parameters
 from START unchanged (e.g. its box MLP). START is a training workdir (its latest checkpoint)
 or a pretrained model, as `--init-from` takes it; TUNED is the fine-tune's workdir (its
 latest checkpoint, or the moving average of a run with `ema_decay`). They must be the same
-model: every field but the training-only ones equal (`Config.inference`), so that their
-parameter trees match. The written config is START's.
+model, so that their parameter trees match leaf for leaf (same structure and shapes). The
+written config is START's.
 """
 
 from __future__ import annotations
@@ -36,6 +36,14 @@ def interpolate(start: dict, tuned: dict, alpha: float, keep: tuple[str, ...] = 
     }
 
 
+def same_tree(a: dict, b: dict) -> bool:
+    """Whether two parameter trees have the same structure and leaf shapes."""
+    if jax.tree.structure(a) != jax.tree.structure(b):
+        return False
+    pairs = zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True)
+    return all(x.shape == y.shape for x, y in pairs)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--start", required=True, help="workdir or pretrained model")
@@ -53,10 +61,10 @@ def main() -> None:
         if not 0.0 <= a <= 1.0:
             raise SystemExit(f"--alpha {a}: must lie in [0, 1]")
     cfg_s, start = start_params(args.start)
-    cfg_t, tuned, step_t = load_params(args.tuned)
-    if cfg_s.inference() != cfg_t.inference():
-        raise SystemExit(f"{args.start} and {args.tuned}: not the same model (configs differ "
-                         "beyond the training-only fields)")
+    _, tuned, step_t = load_params(args.tuned)
+    if not same_tree(start, tuned):
+        raise SystemExit(f"{args.start} and {args.tuned}: not the same model (their parameter "
+                         "trees differ in structure or shapes)")
     unknown = sorted(set(args.keep) - set(start))
     if unknown:
         raise SystemExit(f"--keep {' '.join(unknown)}: no such parameters; the model has "

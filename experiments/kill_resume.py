@@ -1,6 +1,6 @@
 """kill -9 at random moments of a training run: every resume ends at bit-identical parameters.
 
-The acceptance check of issue 24, as a script (minutes on a CPU, so not part of `make test`;
+The crash-safety check of training, as a script (minutes on a CPU, so not part of `make test`;
 tests/test_train.py has the one-kill version):
 
 1. `scenegen prepare` a tiny-config cache of the Argoverse 2 train logs into a temporary folder;

@@ -1,5 +1,5 @@
-"""Where sampled vehicles point, by heading bin (issue 21: why SceneGen loses the heading MMD on
-womd_mini val although its vehicles on lanes are aligned with them).
+"""Where sampled vehicles point, by heading bin: what lies behind a heading MMD that is worse
+than the baselines' although the vehicles on lanes are aligned with them.
 
 `scenegen evaluate`'s protocol on `--num` scenes spread over the caches (the same conditioning
 scenes, baselines and SceneGen samples at the model's temperature): for the real scenes and each

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Issue 23: training throughput of two processes x one core (jax.distributed, coordinator on
+# Training throughput of two processes x one core (jax.distributed, coordinator on
 # 127.0.0.1) against one process x one core, `cpu` config, the same global batch of 4.
 # Run on an idle machine (pause any training: pkill -STOP -f "scenegen train"). Prints the
 # scenes per second of each logged block after the first (which holds the compilation).
