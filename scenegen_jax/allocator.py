@@ -1,12 +1,10 @@
 """The process's C heap: tcmalloc in place of glibc's malloc where it is installed.
 
-XLA:CPU allocates a call's temporaries afresh at every call, about 5 GiB for the train step
-at the paper's grid (320, T 25). glibc's malloc maps each allocation above 32 MiB with
-`mmap` and unmaps it on `free`, so every call faults all of those pages in again: 6.2 M minor
-faults and 67 s of kernel time in a process that compiles it and runs it four times, on two
-cores that also run the step. tcmalloc keeps freed pages for the next call: 1.9 M faults,
-26 s, and the step 1.03-1.7x faster, the more the dearer the host's faults (bench/README.md,
-session 58; at T 5 the gain is within the spread).
+XLA:CPU allocates a call's temporaries afresh at every call, gigabytes for the train step
+at the paper's grid. glibc's malloc maps each allocation above 32 MiB with `mmap` and unmaps
+it on `free`, so every call faults all of those pages in again, in kernel time taken from the
+cores that run the step. tcmalloc keeps freed pages for the next call, which makes large steps
+faster, the more so the dearer the host's page faults (docs/performance.md).
 
 A process's allocator is fixed when it starts, so the `scenegen` command (and `bench/`'s
 timing of ours) starts itself again once, at once, with the library in LD_PRELOAD
@@ -91,8 +89,8 @@ def release_freed_memory() -> None:
     """Hands freed heap pages back to the OS: tcmalloc's `ReleaseFreeMemory`, glibc's
     `malloc_trim` (a no-op where neither is found).
 
-    Compiling the train step at grid 128 leaves about 0.6 GiB of the compiler's freed memory
-    resident; returned before the first step, it no longer adds to the step's peak.
+    Compiling the train step leaves the compiler's freed memory resident (hundreds of MiB at
+    grid 128); returned before the first step, it does not add to the step's peak.
     """
     try:
         if active() == "tcmalloc":

@@ -68,8 +68,7 @@ class Config:
       gn_groups: GroupNorm groups. The presets use one group per channel (the paper does not
         give the count): with several channels per group, a channel whose mean falls below
         its group's goes negative everywhere after the norm and dies behind the ReLU, and
-        with it the backbone's heading information (experiments/results/README.md,
-        session 14).
+        with it the backbone's heading information.
       num_mixtures: K, mixture components of box, heading and velocity (velocity has at
         least 2: the v = 0 point mass and one moving component).
       hard_negatives: bins in the training location normaliser (hard negative mining); at or
@@ -79,8 +78,7 @@ class Config:
       learning_rate: Adam step size (after the warm-up).
       warmup_steps: steps of a linear learning-rate ramp from 0 to `learning_rate` (beyond the
         paper; 0 disables). Adam's first steps move every weight by about the full step size
-        whatever its gradient; the ramp keeps them from silencing backbone channels
-        (experiments/results/README.md, session 14).
+        whatever its gradient; the ramp keeps them from silencing backbone channels.
       decay_steps: after the warm-up, steps of a cosine decay of the learning rate from
         `learning_rate` to 0, then 0 (beyond the paper; 0 keeps it constant). The shipped
         model's last phase decays the noise of constant-rate Adam at batch 4
@@ -115,31 +113,27 @@ class Config:
       coord_channels: two more input channels, each pixel's row and column in [-1, 1]
         (beyond the paper's input; off in the presets). The network is otherwise fully
         convolutional and cannot tell the top of the grid from the middle, where the first
-        actor in canonical order stands (experiments/results/README.md, session 15).
+        actor in canonical order stands.
       orientation_bins: K more input channels, the lane orientation binned over K equal
         sectors of the circle (each lane pixel splits its weight between the two sectors
         nearest its direction; 0 disables, the presets' default). The same information as the
         (cos, sin) channels, in a code that per-scene normalisation keeps: GroupNorm with one
         channel per group reduces cos(lane direction) on a straight road to its sign, but a
-        sector's mask stays a mask (experiments/results/README.md, session 17). Needs the
-        `lanes` layers.
+        sector's mask stays a mask. Needs the `lanes` layers.
       order_channel: one more input channel, 1 on the bins the canonical order still allows
         for the next actor (at or after the previous actor's bin, every bin at the first
         step) and 0 before (beyond the paper's input). It is what sampling's ordering mask
         removes, which the fully convolutional network cannot otherwise see: without it the
         unmasked distribution it learns and the masked one it is sampled from differ, and the
-        class head cannot tell how much room the order leaves (experiments/results/README.md,
-        session 19).
+        class head cannot tell how much room the order leaves.
       attribute_map_input: the attribute MLPs also take the map channels at the actor's bin
         (beyond the paper, whose MLPs see the backbone's feature vector only). The raw map
         at the bin holds the lane direction that the heading needs; the 16-channel backbone
-        passes on only part of it (experiments/results/README.md, sessions 18-19). Needs map
-        layers and `separate_attribute_mlps`.
+        passes on only part of it. Needs map layers and `separate_attribute_mlps`.
       attribute_map_skip: with `attribute_map_input`, the map channels at the bin also enter
         each attribute MLP's last layer, a linear path (beyond the paper) from the lane
         direction (cos, sin) to the heading mixture's directions, which the hidden ReLU
-        layers only approximate: the sampled headings stood 5-20 degrees off their lanes
-        where the real ones stand within 5 (experiments/results/README.md, session 20).
+        layers approximate too coarsely to keep sampled headings along their lanes.
       heading_lane_frame: the heading mixture's directions are relative to the nearest
         lane's direction at the actor's bin (beyond the paper; the distribution is still the
         paper's von Mises mixture, turned by a known angle): the heading MLP gives angles
@@ -149,9 +143,9 @@ class Config:
         `raster.map.NEAREST_LANE_MAX_M`. Needs the `nearest_lane` map layers.
       separate_attribute_mlps: one three-layer MLP per attribute (box, heading, velocity), as
         the paper's MLP_box, MLP_theta and MLP_v (the presets). False, the form of checkpoints
-        saved before this field existed, is one MLP whose last layer outputs all three: the
-        heading then shares its hidden units with the box and velocity, and in most runs
-        never learnt (experiments/results/README.md, session 18).
+        whose config lacks this field, is one MLP whose last layer outputs all three: the
+        heading then shares its hidden units with the box and velocity, and mostly fails to
+        learn.
       seed: base random seed.
     """
 
@@ -355,7 +349,7 @@ PRESETS: dict[str, Config] = {
         grad_clip=0.0,
         separate_attribute_mlps=True,
         # Recomputes only where the step would not fit: its batch of 16 on one accelerator.
-        # On CPU, where a scene's step fits, recomputing costs 6-15 % (bench/README.md).
+        # On CPU, where a scene's step fits, recomputing would only cost time.
         remat="auto",
     ),
     # Trains on 2 CPU cores: 1.25 m/px over the same 80 m region, half the paper's width.
@@ -369,7 +363,7 @@ PRESETS: dict[str, Config] = {
         gn_groups=16,
         num_mixtures=10,
         # The full softmax over the 4,096 bins: with 2,000 hard negatives (half the grid) the
-        # location term stayed at flat logits in every run (experiments/results/README.md).
+        # location term stays at flat logits.
         hard_negatives=64 * 64,
         batch_size=4,
         learning_rate=1e-3,

@@ -18,16 +18,15 @@ def pytest_configure(config):
     """XLA's lowest backend optimisation level for every program the suite compiles, and
     XLA:CPU's older loop emitters in place of its fusion emitters, unless XLA_FLAGS is set
     (`XLA_FLAGS= make test` runs XLA's defaults): the same HLO, so the same operations in the
-    same order, with less LLVM optimisation of the generated kernels. Session 21, two
-    workers, Zen 4: the level cut 1,615 -> 1,222 s of test time, 821 -> 700 s wall. Session
-    22: at that level the older emitters compile the small train step in 7-9 s instead of
-    11-14 s and run it as fast (at the default level they are slower at both).
+    same order, with less LLVM optimisation of the generated kernels. The suite's programs run
+    briefly, so the compile time saved outweighs the slower kernels; at this level the loop
+    emitters compile the small train step faster than the fusion emitters and run it as fast.
 
     One persistent compilation cache for this run, shared by the xdist workers and the
     CLI subprocesses (they inherit the environment; JAX reads JAX_COMPILATION_CACHE_DIR when
     it is imported): a program compiled by one test is loaded by the next that builds the
     same one, however short its compile (JAX's default keeps only programs that took 1 s or
-    more; session 37: test_distributed.py 102 -> 95 s with every program kept). The cache
+    more). The cache
     starts empty and is removed at the end, so the suite times a fresh machine and never
     reads or writes the user's ~/.cache."""
     if "XLA_FLAGS" not in os.environ:
@@ -41,9 +40,8 @@ def pytest_configure(config):
     config._scenegen_compile_cache = path
 
 
-# The modules that take longest, slowest first (session 37, `--durations=0` on two workers:
-# 209, 190, 115, 98, then 53 down to 29 s of the suite's 990; the rest take 13 s or less):
-# each xdist worker takes the next whole module when it is nearly done with its last, in
+# The modules that take longest, slowest first (by `--durations=0` on two workers; the rest
+# are short): each xdist worker takes the next whole module when it is nearly done with its last, in
 # this order, then the rest in file order, so that the short ones even out the end.
 SLOWEST_MODULES = ("test_train.py", "test_unroll.py", "test_distributed.py", "test_sampling.py",
                    "test_womd_json.py", "test_scoring.py", "test_checkpoint.py",

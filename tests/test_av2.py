@@ -293,7 +293,8 @@ def test_prepare_skips_and_names_unusable_logs(data_root, tmp_path):
 
 def test_a_log_under_a_path_that_is_not_utf8_reads(log_copy, tmp_path):
     """A folder name with bytes that are not UTF-8 (Linux allows them): the log reads to the
-    same frames. pyarrow refused such a path, and the good log was counted as unreadable."""
+    same frames. pyarrow refuses such a path, so a reader handing it the path would count the
+    good log as unreadable."""
     odd = tmp_path / os.fsdecode(b"logs\xff")
     odd.mkdir()
     os.rename(log_copy, odd / log_copy.name)

@@ -1,6 +1,6 @@
 """The backend's per-CPU choices (`scenegen_jax.backend`) on each kind of CPU the project runs
-on, from faked CPU answers (the table of its docstrings and bench/README.md), and its AVX-512
-test against the kernel's own flags. `tests/test_avx2_only.py` runs the same choices under a
+on, from faked CPU answers (the choices `backend`'s docstrings state), and its AVX-512 test
+against the kernel's own flags. `tests/test_avx2_only.py` runs the same choices under a
 real CPUID that hides AVX-512, where the host allows it."""
 
 import os

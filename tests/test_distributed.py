@@ -153,9 +153,9 @@ def test_score_and_sample_on_several_devices_and_two_processes(
 
     As many devices as cores, 2 to 4: XLA:CPU sizes its thread pool to the larger of the
     cores and the devices, and splits a program's loops into as many parts as it has
-    threads, which moves a float step between the vector loop and its scalar remainder (on
-    a 2-core Zen 3, 4 devices drew a box a float step wider than one device from the same
-    key, session 50). Within one thread count the devices must not matter."""
+    threads, which moves a float step between the vector loop and its scalar remainder (a
+    box a float step wider from the same key). Within one thread count the devices must not
+    matter."""
     cache = tiny_train_cache.path
     logs = tmp_path / "logs"
     logs.mkdir()

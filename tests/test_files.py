@@ -43,7 +43,7 @@ def test_an_os_error_without_a_file_names_the_output(tmp_path):
 
 def test_exported_pickles_get_the_umasks_permissions(tmp_path):
     """ScenarioNet files are readable as any file the user writes (a private temporary file
-    renamed into place had made them 0600)."""
+    renamed into place would make them 0600)."""
     plain = tmp_path / "plain"
     plain.write_bytes(b"")
     dump_pickle({"id": "a"}, tmp_path / "sd_a.pkl")

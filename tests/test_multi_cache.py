@@ -105,7 +105,7 @@ def test_bad_weights_are_refused():
 
 
 def _old_batch_indices(num_scenes, batch_size, seed, step):
-    """The single-cache order before several caches existed."""
+    """The single-cache draw order, which older workdirs trained on one cache resume with."""
     pos = step * batch_size + np.arange(batch_size)
     epochs, offsets = np.divmod(pos, num_scenes)
     out = np.empty(batch_size, np.int64)
@@ -126,7 +126,7 @@ def test_order_is_a_pure_function_of_seed_and_step(caches):
         np.testing.assert_array_equal(again[1], forward[s][1])
     other = np.concatenate([draw_indices(sizes, shares, 4, 6, s)[1] for s in range(20)])
     assert not np.array_equal(other, np.concatenate([f[1] for f in forward[:20]]))
-    # One cache: the same order as before several caches were supported (old runs resume).
+    # One cache: the order of the single-cache draw (`_old_batch_indices`), so old runs resume.
     for s in range(0, 3000, 7):
         np.testing.assert_array_equal(batch_indices(60, 4, 0, s), _old_batch_indices(60, 4, 0, s))
     # Re-created unions give the same batches.

@@ -64,8 +64,8 @@ def test_fast_unroll_equals_plain_reference(reference_case, chunk_bytes, step_lo
                                             monkeypatch):
     """Backbone chunks of the whole window (default here), 1 step, and 3 steps (uneven), all
     unrolled as on CPU; and the steps as the compiled loop of accelerators, one step an
-    iteration (the scorer's tests run the loop of `backend.STEP_LOOP_UNROLL` steps: 4 steps
-    an iteration compiled this test's gradient in 19 s instead of 7, session 48)."""
+    iteration (the scorer's tests run the loop of `backend.STEP_LOOP_UNROLL` steps, which
+    compiles this test's gradient much more slowly)."""
     import scenegen_jax.backend as backend
     import scenegen_jax.likelihood.unroll as unroll
 
@@ -84,9 +84,7 @@ def test_fast_unroll_equals_plain_reference(reference_case, chunk_bytes, step_lo
         t, _, _ = unroll_terms(p, cfg, maps, scene, 64)
         return -sum(jnp.sum(v) for v in t.values())
 
-    # One program: eagerly, ~300-700 single operations compiled one by one (session 48, the
-    # two chunked variants alone: 81 -> 75 s of CPU time; session 47, the whole window: 21 ->
-    # 9 s).
+    # One program: eagerly, ~300-700 single operations would each compile on their own.
     g_fast = jax.jit(jax.grad(fast_loss))(params)
     # float32 sums over hundreds of terms in another order: tolerances relative to the scale
     # of the gradient (the location bias is softmax-invariant: its exact gradient is 0).

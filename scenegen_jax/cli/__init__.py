@@ -31,8 +31,7 @@ COMPILE_CACHE_MAX_BYTES = 2 * 2**30
 def enable_compile_cache() -> str | None:
     """Keeps compiled programs across runs in JAX's persistent compilation cache, so that a
     second `train`, `score`, `sample` or `evaluate` of the same shapes skips XLA's compilation
-    (about half of the train step's 36 s start-up on 2 CPU cores; 20-26 s for the paper-size
-    train step on a GPU, bench/README.md). The directory is JAX_COMPILATION_CACHE_DIR when
+    (a large part of a run's start-up). The directory is JAX_COMPILATION_CACHE_DIR when
     set (with JAX's own size limit, JAX_COMPILATION_CACHE_MAX_SIZE), else
     $XDG_CACHE_HOME/scenegen_jax/jax (~/.cache by default), at most 2 GiB (least recently
     used entries go first); SCENEGEN_COMPILE_CACHE=off turns it off. Returns the directory.

@@ -94,7 +94,7 @@ def crop_batch(batch: Batch, thetas, cfg: Config):
     """Rotates each cached scene by thetas [B] rad and crops it: (maps [B,H,W,C], scene).
 
     Jitted: called outside a compiled program, its operations would each compile on their
-    own (2.5 s of eager dispatch for 8 `tiny` scenes on one core)."""
+    own."""
     maps, scene, _ = jax.vmap(lambda c, a, e, t: scene_from_cached(c, a, e, t, cfg))(
         batch.canvas, batch.actors, batch.ego, thetas
     )

@@ -18,7 +18,7 @@ convolution to about 1e-5 relative (tests/test_winograd.py).
 
 Where it pays is the backend's choice (`backend.winograd_convolutions`): on CPUs without
 AVX-512, whose matrix products run at half the width, the product count decides; with
-AVX-512 the transforms' memory traffic costs more than the products saved (bench/README.md).
+AVX-512 the transforms' memory traffic costs more than the products saved (docs/performance.md).
 """
 
 from __future__ import annotations
@@ -73,10 +73,9 @@ def _input_tiles(xp, r: int):
     input padded for an r x r kernel (n = TILE + r - 1): [n * n, B * th * tw, C], element
     (a, b) of every tile first. B^T d B as two small matrix products, one over the tiles' rows
     and one over their columns, each on the n strided slices of its axis stacked: about 20
-    operations. Written as sums of slices with B^T's weights (up to n slices for each of the
-    n * n elements), the same transform was a program of ~1,600 lines a convolution, and a
-    scorer of `cpu` size with it compiled in 46 s, against 9-12 s now (AVX2; session 49,
-    bench/README.md)."""
+    operations, where sums of slices with B^T's weights (up to n slices for each of the n * n
+    elements) would make a program of ~1,600 lines a convolution that compiles several times
+    slower."""
     _, _, bt = transforms(TILE, r)
     n = bt.shape[0]
     b, hp, wp, c = xp.shape
@@ -101,9 +100,8 @@ def _output(m, b: int, th: int, tw: int, r: int):
     """The output tiles [B, TILE * th, TILE * tw, Co] of an r x r kernel's products
     m [n * n, B * th * tw, Co]: A^T m A per tile, as one matrix product of the Kronecker
     product A^T (x) A^T [TILE * TILE, n * n] with m, then one transpose that interleaves the
-    tiles' rows and columns. Written as sums of slices stacked into the tiles, XLA:CPU's fusion
-    emitters (the sampler's) ran it at 80 ms for 128 x 128 x 128 outputs, longer than the
-    products (bench/README.md, session 41)."""
+    tiles' rows and columns. Written as sums of slices stacked into the tiles, it runs slower
+    under XLA:CPU's fusion emitters (the sampler's) than the products themselves."""
     at, _, _ = transforms(TILE, r)
     y = jnp.einsum("ka,axo->kxo", jnp.asarray(np.kron(at, at), m.dtype), m)
     y = y.reshape(TILE, TILE, b, th, tw, m.shape[-1]).transpose(2, 3, 0, 4, 1, 5)

@@ -41,11 +41,10 @@ def sample_attributes(
     Best-of-M (paper sec. 3.3; supplementary 3.2 names the attributes: position, heading and
     velocity) keeps the most likely of M proposals under its own mixture (NaN never wins,
     ties keep the first). The box is drawn once, as the paper does: the most likely of M
-    boxes is the mode of the largest component, so every vehicle came out car-sized and the
-    trucks and buses of the real scenes were never sampled (experiments/results/README.md,
-    session 20). The velocity is scored in its mixture's own coordinates, (log speed,
-    direction) (`velocity_proposal_score`): the planar density carries the Jacobian 1 / s^2
-    and made the slowest speed win (with M = 10 every sampled speed fell below 1 m/s).
+    boxes is the mode of the largest component, which would make every vehicle car-sized and
+    never sample the trucks and buses of the real scenes. The velocity is scored in its
+    mixture's own coordinates, (log speed, direction) (`velocity_proposal_score`): the planar
+    density carries the Jacobian 1 / s^2, which would make the slowest proposal win.
     Whether an actor stands is drawn once, by its first velocity proposal (probability
     pi_0, a probability that is not compared with densities); a moving actor keeps the best
     of its moving proposals. The velocity is drawn given the chosen heading (its direction

@@ -85,7 +85,7 @@ def _sample_batch(keys, params, maps, egos, given, caps, temperature, *, cfg: Co
         return rollout(key, params, map_raster, ego, cfg, g, c, options, model, temperature)
 
     if b * s == 1:  # one scene (each call on CPU): no vmap, whose batching of the while loops
-        # traced their bodies several times over (sampler trace 2.5 -> 0.5 s, `tiny`)
+        # traces their bodies several times over
         out = one(keys[0, 0], maps[0], tree_take(egos, 0), tree_take(given, 0), caps[0])
         return jax.tree.map(lambda x: x[None, None], out)
     if parallel >= b * s:
@@ -143,13 +143,12 @@ def sample_batch(
 ) -> Sample:
     """One compiled call for a batch: scene (b, s) is `rollout(keys[b, s], params, maps[b],
     ...)`. Compiled once per (`cfg.inference()`, options, model, shapes); the location
-    temperature is passed as an array, so that every temperature runs the same program
-    (a different one compiled 7-10 s for `tiny` on a slow Xeon).
+    temperature is passed as an array, so that every temperature runs the same program.
 
     The B x S scenes run `options.parallel` at a time under vmap (`lax.map` over groups); a
     vmapped group runs until its longest scene is done. With parallel = 1 each scene runs on
     its own (no vmap), which is fastest on CPU: there a vmapped group's activations leave the
-    cache and its convolutions slow down more than batching gains (bench/README.md).
+    cache and its convolutions slow down more than batching gains.
 
     Args:
       keys: [B, S] keys; S samples per map share its map, ego, given actors and caps.
@@ -187,7 +186,7 @@ def sample_split(keys: jax.Array, params: Any, maps, egos: Actors, given: Actors
     call, the accelerator default) has its maps split over the devices (a `data` mesh).
     Scenes run one at a time are never left whole: a batch of one scene on several devices
     would otherwise run, padded, as a sharded program of its own, whose rounding differs
-    (a box size a float step apart on a Zen 3, session 50). Each scene is the same on any
+    (a float step in a box size). Each scene is the same on any
     number of devices with the same threads (XLA:CPU splits loops by its thread pool, whose
     size is the larger of the cores and the devices: README).
 

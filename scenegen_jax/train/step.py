@@ -139,8 +139,8 @@ def learning_rate_at(cfg: Config) -> float | optax.Schedule:
 
 def init_state(cfg: Config, seed: int | None = None) -> TrainState:
     """Fresh train state from `seed` (default cfg.seed), compiled as one program with the
-    parameters (`init_params`): the optimizer's zeros, dispatched one by one, took 0.6 s of
-    `tiny`'s 2.7 s on a Zen 4 (bench/README.md)."""
+    parameters (`init_params`), since the optimizer's zeros dispatched one by one would take
+    a noticeable share of the initialisation."""
 
     def fresh(key):
         init_key, base = jax.random.split(key)
@@ -224,10 +224,9 @@ def train_step(
 
 
 # The train step's buffers without remat, bytes per scene, step of a window and pixel of the
-# grid: STEP_BYTES_PER_CHANNEL per hidden channel plus STEP_BYTES_FIXED. XLA's buffer plans
-# (`memory_analysis`) held 3,625-3,911 at hidden 16 (grids 32 and 64) and 4,505 (grid 128)
-# and 4,788 (grid 320, T 25, B 1) at the paper's hidden 32 (bench/README.md, session 64;
-# tests/test_train.py).
+# grid: STEP_BYTES_PER_CHANNEL per hidden channel plus STEP_BYTES_FIXED, fitted to XLA's
+# buffer plans (`memory_analysis`) at hidden 16 and 32 and grids 32 to 320; tests/test_train.py
+# holds the estimate within 10 % of the plan.
 STEP_BYTES_PER_CHANNEL = 60
 STEP_BYTES_FIXED = 2800
 # Share of the free memory a step without remat may take (`resolve_remat`): the rest holds
@@ -247,9 +246,8 @@ def resolve_remat(cfg: Config, scenes: int) -> Config:
     """`cfg` with `remat` "auto" made false where the step without remat on a device that
     holds `scenes` scenes of the batch takes at most `REMAT_FREE_SHARE` of the memory free
     now (`step_bytes_without_remat`, `backend.free_memory_bytes`), else true; the choice is
-    logged. Other values are kept. At the paper's grid and T 25 a scene's step without remat
-    takes 12 GiB: on a 24 GiB host (2 cores) it runs without, 6-15 % faster; the paper's
-    batch of 16 on one accelerator recomputes (bench/README.md)."""
+    logged. Other values are kept. Remat costs time wherever the step fits without it, so it
+    is taken only where memory requires it (the paper's batch of 16 on one accelerator)."""
     if cfg.remat != "auto":
         return cfg
     need, free = step_bytes_without_remat(cfg, scenes), free_memory_bytes()
@@ -310,8 +308,9 @@ class SplitTrainStep:
     windows), so `QuickStartTrainStep` swaps the one-program step in once it is compiled.
     The programs compile side by side, the prologue and the epilogue (milliseconds a step)
     with `quick_train_compiler_options`, the chunks with `train_compiler_options`, or with
-    the quick options too where `quick` (the chunks then compile 3-4x faster and run 2x
-    slower: for steps until a faster program takes over). The state argument is donated."""
+    the quick options too where `quick` (the chunks then compile several times faster and
+    run about 2x slower: for steps until a faster program takes over). The state argument is
+    donated."""
 
     def __init__(self, cfg: Config, state: TrainState, batch: Batch, quick: bool = False):
         scale = 1.0 / batch.actors.cls.shape[0]
@@ -378,13 +377,12 @@ class SplitTrainStep:
 class QuickStartTrainStep:
     """A train step that starts on `SplitTrainStep` and, for runs of more than
     `backend.QUICK_START_STEPS` steps, starts on its quick form (chunks compiled with the
-    quick options, a tenth of the one-program step's compile on XLA:CPU and 2x slower
-    steps), then compiles on a background thread, once the first step is done (beside it,
-    the compile slowed that step by 1.8 s of `tiny`'s 15), the split step with the train
-    step's options and after it the one-program step (`compile_train_step`); each step runs
-    the fastest of them that is ready. Shorter runs keep the split step with the train
-    step's options throughout (bench/README.md). `close` waits for a background compile
-    still running."""
+    quick options, a fraction of the one-program step's compile on XLA:CPU and about 2x
+    slower steps), then compiles on a background thread, once the first step is done (a
+    compile beside it would slow it), the split step with the train step's options and after
+    it the one-program step (`compile_train_step`); each step runs the fastest of them that
+    is ready. Shorter runs keep the split step with the train step's options throughout.
+    `close` waits for a background compile still running."""
 
     def __init__(self, cfg: Config, state: TrainState, batch: Batch, mesh: Mesh | None,
                  steps: int):
