@@ -15,7 +15,7 @@ PACKAGE = os.path.join(REPO, "scenegen_jax")
 # likelihood, sampling and evaluation only need parameters.
 LAYERS = (
     ("jsonfile", "files"),
-    ("config", "allocator", "backend"),
+    ("config", "allocator", "backend", "recipes"),
     ("scene", "vector_map"),
     ("frame", "geometry"),
     ("checkpoint", "raster"),
@@ -25,6 +25,7 @@ LAYERS = (
     ("sampling",),
     ("pretrained",),
     ("train", "eval", "viz"),
+    ("api",),
     ("cli",),
 )
 
