@@ -5,7 +5,7 @@ B 1, on the two cores. Run alone on an idle machine, one side after the other:
     .venv/bin/python bench/conv_pair.py ours --grid 320
     bench/.venv-torch/bin/python bench/conv_pair.py torch --grid 320
 
-Ours: `model.network.conv` (the weight gradient in the backend's row bands) compiled with the
+Ours: `model.layers.conv` (the weight gradient in the backend's row bands) compiled with the
 train step's options (`backend.train_compiler_options`); the reference: `conv2d` and
 `torch.nn.grad.conv2d_input` / `conv2d_weight` in float32 (oneDNN). Prints one line per shape:
 median milliseconds of forward / input gradient / weight gradient, GFLOP/s in brackets.
@@ -37,7 +37,7 @@ def ours(grid: int, k: int, ci: int, co: int, runs: int) -> list[float]:
     import jax
 
     from scenegen_jax.backend import train_compiler_options
-    from scenegen_jax.model.network import conv
+    from scenegen_jax.model.layers import conv
 
     opts = train_compiler_options()
     keys = jax.random.split(jax.random.key(0), 3)

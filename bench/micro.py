@@ -3,7 +3,7 @@ paper's width (hidden 32) and grid 128, B 1, on XLA:CPU. Run alone on an idle ma
 
     .venv/bin/python bench/micro.py            # prints one line per operation (median ms)
 
-- GroupNorm (8 groups), forward and forward + backward: `model.network.group_norm` against
+- GroupNorm (8 groups), forward and forward + backward: `model.layers.group_norm` against
   the same statistics reduced over the grouped 5-D view (the plain formulation);
 - convolutions 3x3 32 -> 32 and 5x5 32 -> 128: forward, input gradient and weight gradient,
   with XLA's default (YNNPACK) and with `scoring_compiler_options()` (Eigen);
@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 
 from scenegen_jax.backend import scoring_compiler_options, weight_gradient_bands
-from scenegen_jax.model.network import (
+from scenegen_jax.model.layers import (
     _banded_conv,
     _conv,
     conv,

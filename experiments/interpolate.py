@@ -22,7 +22,7 @@ import os
 import jax
 
 from scenegen_jax.pretrained import save_pretrained
-from scenegen_jax.train.loop import start_params
+from scenegen_jax.train.warm_start import start_params
 from scenegen_jax.workdir import load_params
 
 

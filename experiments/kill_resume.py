@@ -1,7 +1,7 @@
 """kill -9 at random moments of a training run: every resume ends at bit-identical parameters.
 
 The crash-safety check of training, as a script (minutes on a CPU, so not part of `make test`;
-tests/test_train.py has the one-kill version):
+tests/test_train_loop.py has the one-kill version):
 
 1. `scenegen prepare` a tiny-config cache of the Argoverse 2 train logs into a temporary folder;
 2. `scenegen train` an uninterrupted run of `--steps` steps (a small model via `--set`, of

@@ -76,7 +76,7 @@ def compiled_window_loop() -> bool:
 
 def weight_gradient_bands() -> tuple[int, int] | None:
     """(above, rows): convolutions over more than `above` rows take their weight gradient
-    summed over bands of at most `rows` rows (`model.network.conv`); None: never (accelerators
+    summed over bands of at most `rows` rows (`model.layers.conv`); None: never (accelerators
     keep their own).
 
     XLA:CPU through YNNPACK (AMD with AVX-512): (128, 64), since its weight gradient slows
@@ -98,7 +98,7 @@ def compiled_step_loop(differentiated: bool = True) -> bool:
 
 def explicit_conv_gradients() -> bool:
     """Whether the model writes its convolutions' gradients in the form XLA:CPU's convolution
-    library takes (`model.network.conv`): on XLA:CPU where a differentiated unroll runs a
+    library takes (`model.layers.conv`): on XLA:CPU where a differentiated unroll runs a
     compiled loop (only where tests patch in the accelerators' loops). XLA:CPU canonicalises
     autodiff's convolution forms only outside loops; inside one they become plain loops, an
     order of magnitude slower."""

@@ -43,10 +43,11 @@ def pytest_configure(config):
 # The modules that take longest, slowest first (by `--durations=0` on two workers; the rest
 # are short): each xdist worker takes the next whole module when it is nearly done with its last, in
 # this order, then the rest in file order, so that the short ones even out the end.
-SLOWEST_MODULES = ("test_train.py", "test_unroll.py", "test_distributed.py", "test_sampling.py",
+SLOWEST_MODULES = ("test_unroll.py", "test_train_step.py", "test_distributed.py",
+                   "test_train_loop.py", "test_warm_start.py", "test_sampling_network.py",
                    "test_womd_json.py", "test_scoring.py", "test_checkpoint.py",
-                   "test_multi_cache.py", "test_av2.py", "test_keys.py", "test_fuzz.py",
-                   "test_distributions.py")
+                   "test_multi_cache.py", "test_av2.py", "test_network.py", "test_keys.py",
+                   "test_fuzz.py", "test_distributions.py")
 
 
 def pytest_collection_modifyitems(config, items):
@@ -94,7 +95,8 @@ def all_frames(data_root):
 def tiny_train_cache(tmp_path_factory, data_root):
     """A tiny-config cache of every 8th train frame (written once per session)."""
     from scenegen_jax.config import get_config
-    from scenegen_jax.data.cache import load_cache, write_cache
+    from scenegen_jax.data.cache import load_cache
+    from scenegen_jax.data.cache_write import write_cache
     from scenegen_jax.data.sources import read_frames, source_spec
 
     out = str(tmp_path_factory.mktemp("cache_tiny"))

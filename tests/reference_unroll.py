@@ -10,7 +10,9 @@ import jax.numpy as jnp
 from scenegen_jax.config import Config
 from scenegen_jax.distributions import TERMS
 from scenegen_jax.likelihood.unroll import _bound, _pad_slots, head_terms, step_heads
-from scenegen_jax.model.network import SceneGenNet, conv, lstm_gates
+from scenegen_jax.model.convlstm import lstm_gates
+from scenegen_jax.model.layers import conv
+from scenegen_jax.model.network import SceneGenNet
 from scenegen_jax.raster.actors import draw_actor
 from scenegen_jax.scene import STOP, Scene, bin_index
 

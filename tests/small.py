@@ -13,8 +13,7 @@ from scenegen_jax.config import get_config
 # windows took twice the compile time of the train step: every window traces its own
 # heads; tests of the windows set their own `bptt_window`). On CPU every step of a
 # differentiated window is traced and compiled on its own, so the suite's compile time
-# grows with the steps (session 47, a slow Xeon: `make test` 995 s with 9 slots and 10 steps,
-# 931 s with these and test_checkpoint's shared workdirs, run one after the other).
+# grows with the steps.
 CFG = get_config("tiny").replace(
     max_actors=6,
     bptt_window=7,

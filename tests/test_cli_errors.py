@@ -14,7 +14,7 @@ import pytest
 
 from scenegen_jax import cli
 from scenegen_jax.config import get_config
-from scenegen_jax.data.cache import write_cache
+from scenegen_jax.data.cache_write import write_cache
 from scenegen_jax.data.sources import read_frames, source_spec
 
 

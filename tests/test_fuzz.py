@@ -49,7 +49,8 @@ from scenegen_jax.data import scenarionet as SN
 from scenegen_jax.data import womd_json as W
 from scenegen_jax.data.av2 import ANNOTATION_COLUMNS, POSE_COLUMNS
 from scenegen_jax.data.av2_map import vector_map_from_json
-from scenegen_jax.data.cache import cached_scene, load_cache, write_cache
+from scenegen_jax.data.cache import cached_scene, load_cache
+from scenegen_jax.data.cache_write import write_cache
 from scenegen_jax.data.sources import read_file as read_source_file
 from scenegen_jax.data.sources import source_spec
 from scenegen_jax.frame import MAX_SIZE_M

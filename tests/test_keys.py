@@ -15,7 +15,8 @@ import pytest
 from scenegen_jax import cli
 from scenegen_jax.checkpoint import Checkpointer
 from scenegen_jax.config import get_config
-from scenegen_jax.data.cache import load_cache, write_cache
+from scenegen_jax.data.cache import load_cache
+from scenegen_jax.data.cache_write import write_cache
 from scenegen_jax.data.sources import read_frames, source_spec
 from scenegen_jax.eval import nll
 from scenegen_jax.eval.evaluate import real_scenes, sample_scenegen

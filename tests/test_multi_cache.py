@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 from small import CFG
 
-from scenegen_jax.data.cache import check_compatible, load_cache, write_cache
+from scenegen_jax.data.cache import check_compatible, load_cache
+from scenegen_jax.data.cache_write import write_cache
 from scenegen_jax.data.union import CacheUnion, load_union
 from scenegen_jax.frame import Frame
 from scenegen_jax.likelihood.batch import gather_batch
@@ -279,7 +280,7 @@ def test_four_shards_train_to_the_parameters_of_one_cache(womd_root, tmp_path):
 
     from scenegen_jax import cli
     from scenegen_jax.config import get_config
-    from scenegen_jax.data.cache import ACTOR_FIELDS
+    from scenegen_jax.data.cache_layout import ACTOR_FIELDS
     from scenegen_jax.data.prepare import prepare
     from scenegen_jax.data.sources import source_spec
     from scenegen_jax.train.loop import load_trained

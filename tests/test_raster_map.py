@@ -63,7 +63,13 @@ def test_lane_channels_orientation_and_marks():
     )
     r = rasterize_map(VectorMap(lanes=(lane,)), 40, 1.0)
     inside = r[..., CH["lane_vehicle"]] > 0
-    assert inside.sum() == pytest.approx(20 * 3.6, abs=20)
+    # Pixel centres lie at x = i - 19.5 m (column i) and y = 19.5 - j m (row j). The lane
+    # covers |x| <= 10 m and |y| <= 1.8 m: columns 10-29 (x = -9.5 ... 9.5 m) and rows 18-21
+    # (y = 1.5 ... -1.5 m), 20 x 4 = 80 pixels, none of their centres on its outline.
+    want = np.zeros((40, 40), bool)
+    want[18:22, 10:30] = True
+    assert inside.sum() == 80
+    np.testing.assert_array_equal(inside, want)
     assert np.allclose(r[inside, CH["lane_orientation_cos"]], 1.0)
     assert np.allclose(r[inside, CH["lane_orientation_sin"]], 0.0)
     assert np.array_equal(inside, r[..., CH["lane_intersection"]] > 0)

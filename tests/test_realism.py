@@ -106,7 +106,8 @@ def test_real_argoverse_scenes_are_on_the_road_along_their_lanes(data_root, tmp_
     """The real val log, as a user's reference: every vehicle within 40 m stands on the
     drivable area, and most vehicles on a lane point along it (93 % at the `cpu` grid);
     annotated boxes do not overlap."""
-    from scenegen_jax.data.cache import cached_scene, load_cache, write_cache
+    from scenegen_jax.data.cache import cached_scene, load_cache
+    from scenegen_jax.data.cache_write import write_cache
     from scenegen_jax.data.sources import read_frames, source_spec
     from scenegen_jax.eval.evaluate import real_scenes
 

@@ -202,7 +202,7 @@ def test_sharded_prepare_reads_as_the_whole_cache(tiny_train_cache, data_root, t
     frames: every 8th step of the train logs); a missing or foreign shard is an error."""
     import shutil
 
-    from scenegen_jax.data.cache import ACTOR_FIELDS
+    from scenegen_jax.data.cache_layout import ACTOR_FIELDS
     from scenegen_jax.data.prepare import prepare
     from scenegen_jax.data.sources import source_spec
     from scenegen_jax.data.union import load_union

@@ -11,12 +11,9 @@ from reference_unroll import reference_step_terms
 from small import CFG, random_params, two_small_scenes
 
 from scenegen_jax.likelihood.batch import crop_batch, gather_batch
+from scenegen_jax.likelihood.grads import unroll_terms_and_grads
 from scenegen_jax.likelihood.terms import nll_metrics
-from scenegen_jax.likelihood.unroll import (
-    num_windows,
-    unroll_terms,
-    unroll_terms_and_grads,
-)
+from scenegen_jax.likelihood.unroll import num_windows, unroll_terms
 from scenegen_jax.train.step import loss_fn
 
 

@@ -7,9 +7,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy.signal import correlate2d
+from small import CFG
 
-from scenegen_jax.model import network, winograd
-from tests.small import CFG
+from scenegen_jax.model import layers, winograd
 
 
 @pytest.mark.parametrize("r", [3, 5])
@@ -63,12 +63,12 @@ def test_kernels_of_even_or_mixed_sizes_are_refused():
 @pytest.fixture
 def winograd_on(monkeypatch):
     """The backend's choice as on a CPU without AVX-512 (whatever this one has)."""
-    monkeypatch.setattr(network, "winograd_convolutions",
+    monkeypatch.setattr(layers, "winograd_convolutions",
                         lambda kernel, tiles: tuple(kernel) == (5, 5))
 
 
 def test_the_network_convolution_through_winograd_keeps_values_and_direct_gradients(winograd_on):
-    """`network.conv_sum` through Winograd: the direct convolutions' values to float32's
+    """`layers.conv_sum` through Winograd: the direct convolutions' values to float32's
     precision, and their gradients exactly (the backward pass is theirs)."""
     rng = np.random.default_rng(1)
     xs = [jnp.asarray(rng.normal(size=(2, 12, 12, c)), jnp.float32) for c in (3, 4)]
@@ -76,10 +76,10 @@ def test_the_network_convolution_through_winograd_keeps_values_and_direct_gradie
     b = jnp.asarray(rng.normal(size=(8,)), jnp.float32)
 
     def through(x1, x2, w1, w2):
-        return network.conv_sum([(x1, w1), (x2, w2)], b)
+        return layers.conv_sum([(x1, w1), (x2, w2)], b)
 
     def direct(x1, x2, w1, w2):
-        return network._direct_conv(x1, w1) + network._direct_conv(x2, w2) + b
+        return layers._direct_conv(x1, w1) + layers._direct_conv(x2, w2) + b
 
     y, grad = jax.value_and_grad(lambda *a: jnp.sum(jnp.sin(through(*a))), (0, 1, 2, 3))(*xs, *ws)
     y0, grad0 = jax.value_and_grad(lambda *a: jnp.sum(jnp.sin(direct(*a))), (0, 1, 2, 3))(*xs, *ws)
@@ -104,7 +104,7 @@ def test_scores_through_winograd_match_the_direct_scores(winograd_on, tiny_train
     # Traced under the fixture's choice: Winograd.
     ours = jax.tree.map(np.asarray, jax.jit(lambda p, b: score_batch(p, b, CFG))(params, batch))
     with pytest.MonkeyPatch.context() as m:
-        m.setattr(network, "winograd_convolutions", lambda kernel, tiles: False)
+        m.setattr(layers, "winograd_convolutions", lambda kernel, tiles: False)
         direct = jax.tree.map(np.asarray,
                               jax.jit(lambda p, b: score_batch(p, b, CFG))(params, batch))
     assert ours.keys() == direct.keys()

@@ -94,9 +94,25 @@ def test_layouts_read_alike(degrees, columns):
 
 
 def test_sentinel_steps_never_become_actors():
+    """The pedestrian (track 3) is invalid from step 15 on, its states there a sentinel near
+    the world origin: it is an actor at steps 0-14 only, and the other three at every step,
+    each where its track puts it in the ego frame (hand-computed: the ego, vehicle 0, drives
+    from (100, 50) m at 10 m/s along +x, so at time s an object at world (x, y) is at
+    (x - 100 - 10 s, y - 50))."""
     frames, _ = W.frames_from_scenario(_scene(False, sentinel=0.0001, sdc=0), "x.json", 1)
-    for f in frames:
+    assert [f.scene_id for f in frames] == [f"x/{t}" for t in range(21)]
+    for t, f in enumerate(frames):
+        s = 0.1 * t
+        want = {"1": (5 - 2 * s, 3.5), "2": (10 + 2 * s, -3.5), "4": (-10 - 5 * s, -5.0)}
+        if t < 15:
+            want["3"] = (10 - 10 * s, 8 + 1.2 * s)
+        assert sorted(f.track_id.tolist()) == sorted(want), f.scene_id
+        got = dict(zip(f.track_id.tolist(), f.position, strict=True))
+        for tid, xy in want.items():
+            np.testing.assert_allclose(got[tid], xy, atol=1e-9, err_msg=f"{f.scene_id} {tid}")
         assert np.all(np.abs(f.position) < 100), f.scene_id
+    classes = collections.Counter(int(c) for f in frames for c in f.cls)
+    assert classes == {VEHICLE: 2 * 21, PEDESTRIAN: 15, BICYCLIST: 21}
 
 
 def test_degrees_detected_from_velocity_not_from_range():
@@ -321,11 +337,76 @@ def test_real_vehicles_heading_velocity_length(womd_files, womd_frames):
     assert 3.5 < np.median(lengths) < 6.0
 
 
+# Waymo's road line types (GPUDrive's `map_element_id` is the proto's RoadLine type + 5) by
+# their Argoverse 2 mark names.
+WAYMO_LINE_MARKS = {
+    6: "DASHED_WHITE",  # BROKEN_SINGLE_WHITE
+    7: "SOLID_WHITE",  # SOLID_SINGLE_WHITE
+    8: "DOUBLE_SOLID_WHITE",  # SOLID_DOUBLE_WHITE
+    9: "DASHED_YELLOW",  # BROKEN_SINGLE_YELLOW
+    10: "DOUBLE_DASH_YELLOW",  # BROKEN_DOUBLE_YELLOW
+    11: "SOLID_YELLOW",  # SOLID_SINGLE_YELLOW
+    12: "DOUBLE_SOLID_YELLOW",  # SOLID_DOUBLE_YELLOW
+    13: "SOLID_DASH_YELLOW",  # PASSING_DOUBLE_YELLOW
+}
+
+
+def _file_lines(path: str, center: np.ndarray, radius: float = W.MAP_RADIUS_M):
+    """The road edges and road lines of a file as a map around `center` (world, m) must hold
+    them, read from the JSON itself: world polylines without repeated points (fewer than two
+    left: none), whose bounding box meets the square of half-side `radius` m around
+    `center`; the edges and the typed lines in file order, then the lines without a type
+    (their marks inferred) in file order. Returns ([(points, mark or None)], untyped lines
+    in the whole file)."""
+    with open(path) as f:
+        roads = json.load(f)["roads"]
+    typed, untyped = [], []
+    for road in roads:
+        if road["type"] not in ("road_edge", "road_line"):
+            continue
+        pts = np.array([[p["x"], p["y"]] for p in road["geometry"]], np.float64)
+        pts = pts[np.r_[True, np.linalg.norm(np.diff(pts, axis=0), axis=1) > 1e-6]]
+        if len(pts) < 2:
+            continue
+        element = road.get("map_element_id")
+        if road["type"] == "road_edge":
+            typed.append((pts, ROAD_EDGE))
+        elif element in WAYMO_LINE_MARKS:
+            typed.append((pts, WAYMO_LINE_MARKS[element]))
+        else:
+            untyped.append((pts, None))
+    near = [(p, m) for p, m in typed + untyped
+            if np.all(p.min(0) <= center + radius) and np.all(p.max(0) >= center - radius)]
+    return near, len(untyped)
+
+
 def test_real_maps_have_lanes_lines_and_surface(womd_frames):
-    for path, (frames, _) in womd_frames.items():
+    """Each file's first frame has lanes and a drivable surface, and exactly the file's road
+    edges and road lines near the ego (`_file_lines`), point for point in the ego frame, with
+    their marks: road edges ROAD_EDGE, typed lines their Waymo type's, the others one that
+    `infer_line_marks` gives."""
+    inferred = {"UNKNOWN", "SOLID_WHITE", "DASHED_WHITE", "DOUBLE_SOLID_YELLOW"}
+    seen = collections.Counter()
+    for path, (frames, drops) in womd_frames.items():
         f = frames[0]
         assert f.map.lanes and f.map.drivable_areas, path
         assert f.map.dataset == "waymo", path
+        center = f.city_from_ego[:2, 2]
+        h0 = np.arctan2(f.city_from_ego[1, 0], f.city_from_ego[0, 0])
+        want, untyped = _file_lines(path, center)
+        assert drops["map_info:road_line_mark_inferred"] == untyped, path
+        assert len(f.map.lines) == len(want), path
+        turn = np.array([[np.cos(h0), -np.sin(h0)], [np.sin(h0), np.cos(h0)]])
+        for line, (points, mark) in zip(f.map.lines, want, strict=True):
+            np.testing.assert_allclose(line.points, (points - center) @ turn, atol=1e-6,
+                                       err_msg=path)
+            if mark is None:
+                assert line.mark in inferred, (path, line.mark)
+                seen["untyped"] += 1
+            else:
+                assert line.mark == mark, path
+                seen["edge" if mark == ROAD_EDGE else "typed"] += 1
+    assert min(seen["edge"], seen["typed"], seen["untyped"]) > 100, seen
 
 
 def test_prepare_counts_and_skips_a_corrupt_file(tmp_path, womd_files):

@@ -303,17 +303,8 @@ def read_log(log_dir: str, drops: DropCounter, crop_radius_m: float = 80.0) -> I
     size = np.stack([ann["width_m"], ann["length_m"]], -1).astype(np.float64)
     track = ann["track_uuid"].astype(str)
 
-    # Ground velocity: city-frame tracks, finite differences, back into each row's ego frame.
-    rot = pose_rot[pose_idx]
-    pos_city = np.einsum("nij,nj->ni", rot, pos_ego) + pose_trans[pose_idx]
-    vel_ego = np.zeros((len(t_ns), 2))
-    kept_rows = np.flatnonzero(keep)
-    for _, rows in _group(track[kept_rows]):
-        rows = kept_rows[rows]
-        rows = rows[np.argsort(t_ns[rows])]
-        v_city = finite_difference(t_ns[rows] * 1e-9, pos_city[rows])
-        vel_ego[rows] = np.einsum("nji,nj->ni", rot[rows], v_city)[:, :2]
-
+    vel_ego = _track_velocities(keep, track, t_ns, pos_ego, pose_rot[pose_idx],
+                                pose_trans[pose_idx])
     # Ego velocity from its own poses.
     ego_v_city = finite_difference(pose_t * 1e-9, pose_trans)
     ego_v = np.einsum("nji,nj->ni", pose_rot, ego_v_city)[:, :2]
@@ -324,14 +315,7 @@ def read_log(log_dir: str, drops: DropCounter, crop_radius_m: float = 80.0) -> I
         if p >= len(pose_t) or pose_t[p] != ts:
             continue  # counted above as no_ego_pose
         r, t = pose_rot[p], pose_trans[p]
-        yaw_ego = float(np.arctan2(r[1, 0], r[0, 0]))
-        city_from_ego = np.array(
-            [
-                [np.cos(yaw_ego), -np.sin(yaw_ego), t[0]],
-                [np.sin(yaw_ego), np.cos(yaw_ego), t[1]],
-                [0.0, 0.0, 1.0],
-            ]
-        )
+        city_from_ego = _city_from_ego(r, t)
         local_map = city_map.crop(t[:2], crop_radius_m)
         # City -> ego with the full 3D rotation, keeping x, y (consistent with annotations).
         ego_map = _map_to_ego(local_map, r, t)
@@ -349,6 +333,34 @@ def read_log(log_dir: str, drops: DropCounter, crop_radius_m: float = 80.0) -> I
             map=ego_map,
             city_from_ego=city_from_ego,
         )
+
+
+def _track_velocities(keep: np.ndarray, track: np.ndarray, t_ns: np.ndarray,
+                      pos_ego: np.ndarray, rot: np.ndarray, trans: np.ndarray) -> np.ndarray:
+    """Ground velocity [R, 2] m/s of the kept rows in each row's ego frame: each track's
+    city-frame positions (rows at ego poses rot [R, 3, 3], trans [R, 3]) differenced over
+    time, turned back into the row's ego frame; 0 for the other rows."""
+    pos_city = np.einsum("nij,nj->ni", rot, pos_ego) + trans
+    vel_ego = np.zeros((len(t_ns), 2))
+    kept_rows = np.flatnonzero(keep)
+    for _, rows in _group(track[kept_rows]):
+        rows = kept_rows[rows]
+        rows = rows[np.argsort(t_ns[rows])]
+        v_city = finite_difference(t_ns[rows] * 1e-9, pos_city[rows])
+        vel_ego[rows] = np.einsum("nji,nj->ni", rot[rows], v_city)[:, :2]
+    return vel_ego
+
+
+def _city_from_ego(r: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The ego's planar pose [3, 3] in the city frame: its yaw and x, y of the 3D pose."""
+    yaw_ego = float(np.arctan2(r[1, 0], r[0, 0]))
+    return np.array(
+        [
+            [np.cos(yaw_ego), -np.sin(yaw_ego), t[0]],
+            [np.sin(yaw_ego), np.cos(yaw_ego), t[1]],
+            [0.0, 0.0, 1.0],
+        ]
+    )
 
 
 def _map_to_ego(city_map: VectorMap, rot: np.ndarray, trans: np.ndarray) -> VectorMap:

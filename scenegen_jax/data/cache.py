@@ -1,28 +1,14 @@
-"""Preprocessing cache: map canvases and padded actor arrays that training reads fast.
-
-Layout of a cache directory:
-  meta.json     config (grid, resolution), channel names, scene ids, the prepare summary
-  maps.npy      float16 [S, C, C, len(ALL_MAP_CHANNELS)] map canvases (C = canvas_size)
-  actors.npz    padded actors [S, A] (cls, position, size, heading, velocity, valid), the
-                ego (velocity, size) per scene, and the ego's city pose [S, 3, 3]
-
-A sharded cache (`prepare --shard I/N`, one job per shard, e.g. on N machines) is a directory
-of N such caches, `shard-0000I-of-0000N/`; `load_cache` reads it as one cache, the shards'
-scenes in shard order and their maps memory-mapped per shard.
-
-The canvas covers every rotation of the grid about the ego, and the actors are those within
-the canvas's inscribed circle, so rotation augmentation never reaches outside the cache.
+"""Reading a preprocessing cache (layout: `cache_layout`; written by `cache_write`): one
+directory or the shards of one, checked field by field, as a `Cache` whose maps are
+memory-mapped; several caches stacked as one (`stack_caches`) and checked against a config
+(`check_compatible`).
 """
 
 from __future__ import annotations
 
-import collections
 import dataclasses
-import json
-import logging
 import math
 import os
-import re
 import tokenize
 import zipfile
 from collections.abc import Iterable, Sequence
@@ -30,15 +16,16 @@ from collections.abc import Iterable, Sequence
 import numpy as np
 
 from scenegen_jax.config import Config
-from scenegen_jax.files import written_whole
-from scenegen_jax.frame import Frame
+from scenegen_jax.data.cache_layout import (
+    ACTOR_FIELDS,
+    CACHE_VERSION,
+    SHARD_RE,
+    canvas_radius,
+)
 from scenegen_jax.jsonfile import read_json
-from scenegen_jax.raster.map import ALL_MAP_CHANNELS, rasterize_map
-from scenegen_jax.scene import CLASS_NAMES, Actors, in_region, make_ego
+from scenegen_jax.raster.map import ALL_MAP_CHANNELS
+from scenegen_jax.scene import Actors, in_region, make_ego
 
-log = logging.getLogger(__name__)
-CACHE_VERSION = 3  # 2: the nearest lane channels; 3: the data set channels
-ACTOR_FIELDS = ("cls", "position", "size", "heading", "velocity", "valid")
 # Each array of actors.npz: numpy dtype kinds it may have, and its shape after the scene axis
 # ("A": the actor slots).
 ARRAY_LAYOUT = {
@@ -49,242 +36,10 @@ ARRAY_LAYOUT = {
 _KIND_NAMES = {"iu": "integer", "b": "bool", "f": "float"}
 
 
-def cache_slots(cfg: Config) -> int:
-    """Actor slots stored per scene: room for the in-region maximum under any rotation."""
-    return 2 * cfg.max_actors
-
-
 def actors_in_region(cache, cfg: Config) -> np.ndarray:
     """[S] actors of each scene of a cache (or `CacheUnion`) inside the region of interest,
     unrotated (a rotation moves a few across its edge)."""
     return np.sum(cache.actors.valid & np.asarray(in_region(cache.actors.position, cfg)), axis=1)
-
-
-def canvas_radius(cfg: Config) -> float:
-    """Radius (m) of the disc that holds the grid under every rotation (its half diagonal)."""
-    return cfg.region_m / math.sqrt(2.0)
-
-
-@dataclasses.dataclass
-class Summary:
-    """What `prepare` wrote and dropped (printed as one JSON line).
-
-    `actors` counts actors inside the region of interest per class, `outside_region` the rows
-    of modelled classes outside it (kept in the cache only as far as rotations can reach), so
-    actors + outside_region is every row of a modelled class that was read. `bad_files`
-    counts files that could not be read, by reason (their names are in the log and in
-    `bad_file_list`).
-    """
-
-    scenes: int = 0
-    actors: dict = dataclasses.field(default_factory=lambda: {c: 0 for c in CLASS_NAMES})
-    dropped: dict = dataclasses.field(default_factory=dict)
-    outside_region: dict = dataclasses.field(default_factory=lambda: {c: 0 for c in CLASS_NAMES})
-    overflow: int = 0
-    empty_scenes: int = 0
-    files: int = 0
-    bad_files: dict = dataclasses.field(default_factory=dict)
-    bad_file_list: list = dataclasses.field(default_factory=list)
-
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
-
-
-@dataclasses.dataclass
-class EncodedFrame:
-    """A frame as the cache stores it: its map canvas and padded actors, with counts."""
-
-    scene_id: str
-    map: np.ndarray  # float16 [C, C, len(ALL_MAP_CHANNELS)]
-    actors: dict  # padded arrays by ACTOR_FIELDS
-    ego_velocity: np.ndarray  # [2] m/s
-    ego_size: np.ndarray  # [2] m
-    city_from_ego: np.ndarray  # [3, 3]
-    inside: dict  # in-region actors per class name
-    outside: dict  # disc actors outside the region per class name
-    overflow: int
-
-
-def encode_frame(frame: Frame, cfg: Config) -> EncodedFrame:
-    """Rasterizes and pads one frame (the expensive part of `prepare`; runs in workers)."""
-    padded, inside, overflow = pad_frame_actors(frame, cfg, cache_slots(cfg))
-    return EncodedFrame(
-        scene_id=frame.scene_id,
-        map=rasterize_map(frame.map, cfg.canvas_size, cfg.m_per_px).astype(np.float16),
-        actors=padded,
-        ego_velocity=np.asarray(frame.ego_velocity, np.float32),
-        ego_size=np.asarray(frame.ego_size, np.float32),
-        city_from_ego=np.asarray(frame.city_from_ego, np.float64),
-        inside={n: int(np.sum(inside & (frame.cls == c))) for c, n in enumerate(CLASS_NAMES)},
-        outside={n: int(np.sum(~inside & (frame.cls == c))) for c, n in enumerate(CLASS_NAMES)},
-        overflow=overflow,
-    )
-
-
-class _NpyAppender:
-    """Writes a .npy array one leading-axis item at a time, so maps never sit in memory.
-
-    The header is written first with room for any count and rewritten with the real one at
-    `close` (same length, padded with spaces, as the .npy format allows).
-    """
-
-    HEADER_BYTES = 256
-
-    def __init__(self, path: str, item_shape: tuple[int, ...], dtype) -> None:
-        self.path, self.item_shape, self.dtype = path, item_shape, np.dtype(dtype)
-        self.count = 0
-        self.file = open(path + ".tmp", "wb")  # noqa: SIM115 (closed in close())
-        self.file.write(self._header(0))
-
-    def _header(self, count: int) -> bytes:
-        shape = (count, *self.item_shape)
-        text = repr({"descr": self.dtype.str, "fortran_order": False, "shape": shape})
-        body = self.HEADER_BYTES - 10  # magic (6) + version (2) + length (2)
-        text = text.ljust(body - 1) + "\n"
-        return b"\x93NUMPY\x01\x00" + body.to_bytes(2, "little") + text.encode("latin1")
-
-    def append(self, item: np.ndarray) -> None:
-        self.file.write(np.ascontiguousarray(item, self.dtype).tobytes())
-        self.count += 1
-
-    def close(self) -> None:
-        self.file.seek(0)
-        self.file.write(self._header(self.count))
-        self.file.close()
-        os.replace(self.path + ".tmp", self.path)
-
-    def discard(self) -> None:
-        """Closes and removes the unfinished file (any earlier `path` stays as it was)."""
-        self.file.close()
-        if os.path.exists(self.path + ".tmp"):
-            os.remove(self.path + ".tmp")
-
-
-class CacheWriter:
-    """Appends encoded frames to a cache directory; `close` writes the arrays and meta.json.
-
-    Used as a context manager: when the block raises (a bad file under `--strict`, no scenes,
-    an interrupt), the unfinished maps file is removed and a cache already in the directory
-    is left whole.
-    """
-
-    def __init__(self, out_dir: str, cfg: Config, source: dict | None = None) -> None:
-        os.makedirs(out_dir, exist_ok=True)
-        self.out_dir, self.cfg, self.source = out_dir, cfg, source or {}
-        self.summary = Summary()
-        size = cfg.canvas_size
-        self.maps = _NpyAppender(
-            os.path.join(out_dir, "maps.npy"), (size, size, len(ALL_MAP_CHANNELS)), np.float16
-        )
-        self.arrays: dict = collections.defaultdict(list)
-        self.ids: list[str] = []
-
-    def __enter__(self) -> CacheWriter:
-        return self
-
-    def __exit__(self, exc_type, exc, tb) -> None:
-        if exc_type is not None:
-            self.maps.discard()
-
-    def add(self, enc: EncodedFrame) -> None:
-        self.maps.append(enc.map)
-        for k in ACTOR_FIELDS:
-            self.arrays[k].append(enc.actors[k])
-        for k in ("ego_velocity", "ego_size", "city_from_ego"):
-            self.arrays[k].append(getattr(enc, k))
-        self.ids.append(enc.scene_id)
-        s = self.summary
-        s.scenes += 1
-        for name in CLASS_NAMES:
-            s.actors[name] += enc.inside[name]
-            s.outside_region[name] += enc.outside[name]
-        s.overflow += enc.overflow
-        s.empty_scenes += int(not any(enc.inside.values()))
-
-    def close(self, drops: collections.Counter) -> Summary:
-        """Writes actors.npz and meta.json (with `drops` as the summary's dropped rows). Every
-        file is written in full before any is renamed into place (maps, actors, meta.json
-        last), so a cache already in the directory is replaced only by a whole one."""
-        if not self.ids:
-            raise ValueError(f"{self.out_dir}: no scenes to write")
-        self.summary.dropped = dict(sorted(drops.items()))
-        meta = {
-            "version": CACHE_VERSION,
-            "grid_size": self.cfg.grid_size,
-            "m_per_px": self.cfg.m_per_px,
-            "canvas_size": self.cfg.canvas_size,
-            "slots": cache_slots(self.cfg),
-            "channels": list(ALL_MAP_CHANNELS),
-            "config": json.loads(self.cfg.to_json()),
-            "scene_ids": self.ids,
-            "summary": self.summary.to_dict(),
-            "source": self.source,
-        }
-        with (written_whole(os.path.join(self.out_dir, "meta.json")) as meta_tmp,
-              written_whole(os.path.join(self.out_dir, "actors.npz")) as actors_tmp):
-            with open(actors_tmp, "wb") as f:
-                np.savez(f, **{k: np.stack(v) for k, v in self.arrays.items()})
-            with open(meta_tmp, "w") as f:
-                json.dump(meta, f, indent=1)
-            self.maps.close()
-        return self.summary
-
-
-def write_cache(
-    frames: Iterable[Frame],
-    out_dir: str,
-    cfg: Config,
-    drops: collections.Counter,
-    progress=None,
-    source: dict | None = None,
-) -> Summary:
-    """Rasterizes and pads every frame into `out_dir` in this process; returns the summary.
-
-    `drops` is the reader's counter of dropped rows; it is read after the frames are consumed.
-    `source` (e.g. {"kind": "av2", "root": ..., "split": ..., "stride": ...}) is recorded so
-    that the vector maps can be read again (the baselines need them). `scenegen_jax.data.
-    prepare` does the same over a source's files in parallel.
-    """
-    with CacheWriter(out_dir, cfg, source) as writer:
-        for frame in frames:
-            writer.add(encode_frame(frame, cfg))
-            if progress is not None:
-                progress.update(1)
-        return writer.close(drops)
-
-
-def pad_frame_actors(frame: Frame, cfg: Config, slots: int) -> tuple[dict, np.ndarray, int]:
-    """Actors within the canvas disc, nearest first, padded to `slots`.
-
-    Returns:
-      (padded arrays by field, in-region flag per frame actor, count of disc actors beyond
-      `slots` that were dropped).
-    """
-    pos = np.asarray(frame.position, np.float64)
-    inside = np.asarray(in_region(pos, cfg))
-    dist = np.linalg.norm(pos, axis=1)
-    near = np.flatnonzero(dist <= canvas_radius(cfg))
-    near = near[np.argsort(dist[near], kind="stable")]
-    overflow = max(len(near) - slots, 0)
-    if overflow:
-        log.warning("%s: %d actors beyond %d cache slots dropped", frame.scene_id, overflow, slots)
-    near = near[:slots]
-    n = len(near)
-    out = {
-        "cls": np.zeros(slots, np.int32),
-        "position": np.zeros((slots, 2), np.float32),
-        "size": np.zeros((slots, 2), np.float32),
-        "heading": np.zeros(slots, np.float32),
-        "velocity": np.zeros((slots, 2), np.float32),
-        "valid": np.zeros(slots, bool),
-    }
-    out["cls"][:n] = frame.cls[near]
-    out["position"][:n] = pos[near]
-    out["size"][:n] = frame.size[near]
-    out["heading"][:n] = frame.heading[near]
-    out["velocity"][:n] = frame.velocity[near]
-    out["valid"][:n] = True
-    return out, inside, overflow
 
 
 class StackedMaps:
@@ -308,17 +63,6 @@ class StackedMaps:
             return self._maps[c][i - self._offsets[c]]
         rows = np.arange(self.shape[0])[index]
         return np.stack([self[int(i)] for i in np.atleast_1d(rows)])
-
-
-SHARD_NAME = "shard-{:05d}-of-{:05d}"
-SHARD_RE = re.compile(r"shard-(\d{5})-of-(\d{5})")
-
-
-def shard_dir(out_dir: str, index: int, count: int) -> str:
-    """The folder of shard `index` of `count` inside the cache directory `out_dir`."""
-    if not 0 <= index < count:
-        raise ValueError(f"--shard {index}/{count}: need 0 <= I < N")
-    return os.path.join(out_dir, SHARD_NAME.format(index, count))
 
 
 @dataclasses.dataclass

@@ -18,13 +18,8 @@ from typing import NamedTuple
 
 from scenegen_jax.backend import contiguous_part, cpu_cores
 from scenegen_jax.config import Config
-from scenegen_jax.data.cache import (
-    CacheWriter,
-    EncodedFrame,
-    Summary,
-    encode_frame,
-    shard_dir,
-)
+from scenegen_jax.data.cache_layout import shard_dir
+from scenegen_jax.data.cache_write import CacheWriter, EncodedFrame, Summary, encode_frame
 from scenegen_jax.data.sources import read_file, source_files
 
 log = logging.getLogger(__name__)

@@ -198,6 +198,42 @@ def frames_from_scenario(
       non-finite or without a positive box size at a requested step, with `stride` an SDC
       valid at none of the stride's steps, or NaN/inf map geometry.
     """
+    meta, tracks = _scenario_tracks(scenario, source)
+    sdc_id = _find_sdc(scenario, meta, tracks, source)
+    sdc_field = f"tracks[{sdc_id!r}]"
+    length = _scenario_length(scenario, tracks, sdc_id, source)
+    read = {tid: _read_track(tid, v, length, source) for tid, v in tracks.items()}
+    sdc = read[sdc_id]
+    steps, no_ego = _frame_steps(time_index, all_steps, stride, sdc, sdc_field, meta, length,
+                                 source)
+    world_map, map_dropped = _world_map(scenario, meta, source)
+    city_from_world = _city_from_world(meta, source)
+    scenario_id = str(scenario.get("id", meta.get("scenario_id", Path(source).stem)))
+    own_id = (str(meta["scenegen_scene_id"]) if length == 1 and "scenegen_scene_id" in meta
+              else None)  # our own one-step export's scene id
+    mismatch = bool(steps) and velocity_mismatch(list(read.values()), _step_times(scenario, length))
+
+    out = []
+    for t in steps:
+        ego_w, ego_l = _ego_box(sdc, t, source, f"{sdc_field}.state")
+        # Map features are the file's, not the frame's: counted once, in the first frame.
+        dropped = collections.Counter() if out else collections.Counter(map_dropped)
+        if ego_l < ego_w:
+            dropped["quirk:length_lt_width"] += 1
+            ego_w, ego_l = ego_l, ego_w
+        scene_id = own_id if own_id is not None else f"{scenario_id}/{t}"
+        frame = _frame_at(t, read, sdc_id, (ego_w, ego_l), world_map, city_from_world, scene_id,
+                          source, map_radius_m, dropped)
+        out.append(ImportedFrame(frame, dropped))
+    if mismatch and out:
+        out[0].dropped["quirk:velocity_mismatch"] += 1
+    if no_ego:
+        out[0].dropped["frame:no_ego"] += no_ego
+    return out
+
+
+def _scenario_tracks(scenario: Mapping, source: str) -> tuple[Mapping, dict]:
+    """(metadata, tracks by id as a string) of a scenario, their types checked."""
     if not isinstance(scenario, Mapping):
         raise _err(source, "scenario", f"expected a dict, got {type(scenario).__name__}")
     meta = scenario.get("metadata", {})
@@ -209,16 +245,13 @@ def frames_from_scenario(
     keys = [str(k) for k in tracks]  # MetaDrive's old pickles key some files' tracks by int
     if len(set(keys)) != len(keys):
         raise _err(source, "tracks", "two track ids are equal as strings")
-    tracks = dict(zip(keys, tracks.values(), strict=True))
-    sdc_id = _find_sdc(scenario, meta, tracks, source)
-    sdc_field = f"tracks[{sdc_id!r}]"
-    if "length" in scenario:
-        length = _int(scenario["length"], source, "length")
-    else:  # MetaDrive's old Waymo pickles have no `length`
-        sdc_state = _get(tracks[sdc_id], "state", source, sdc_field)
-        length = len(np.asarray(_get(sdc_state, "position", source, f"{sdc_field}.state")))
-    read = {tid: _read_track(tid, v, length, source) for tid, v in tracks.items()}
-    sdc = read[sdc_id]
+    return meta, dict(zip(keys, tracks.values(), strict=True))
+
+
+def _frame_steps(time_index, all_steps: bool, stride: int | None, sdc, sdc_field: str,
+                 meta: Mapping, length: int, source: str) -> tuple[list[int], int]:
+    """(steps to import, steps of the stride without a frame because the SDC is not valid at
+    them) of a scenario whose SDC is `sdc`, which must be a vehicle (`_steps`)."""
     if CLASS_FROM_TYPE.get(sdc.type, VEHICLE) != VEHICLE:
         raise _err(source, f"{sdc_field}.type", f"the SDC (ego) is a {sdc.type}, not a vehicle")
     steps = _steps(time_index, all_steps, stride, sdc, meta, length, source)
@@ -227,96 +260,121 @@ def frames_from_scenario(
     if stride is not None and not steps:
         raise _err(source, f"{sdc_field}.state.valid",
                    f"the SDC (ego) is valid at none of the steps 0, {stride}, ... of {length}")
+    return steps, no_ego
 
+
+def _scenario_length(scenario: Mapping, tracks: dict, sdc_id: str, source: str) -> int:
+    """Steps of the scenario: its `length`, else the SDC's positions (MetaDrive's old Waymo
+    pickles have no `length`)."""
+    if "length" in scenario:
+        return _int(scenario["length"], source, "length")
+    sdc_field = f"tracks[{sdc_id!r}]"
+    sdc_state = _get(tracks[sdc_id], "state", source, sdc_field)
+    return len(np.asarray(_get(sdc_state, "position", source, f"{sdc_field}.state")))
+
+
+def _world_map(scenario: Mapping, meta: Mapping, source: str):
+    """(VectorMap in the world frame, counts of unusable map features) of a scenario, for its
+    data set (`metadata.dataset`; none for our own exports)."""
     dataset = meta.get("dataset", "")
     if not isinstance(dataset, str):
         raise _err(source, "metadata.dataset", f"expected a string, got {dataset!r}")
-    world_map, map_dropped = map_from_features(_get(scenario, "map_features", source, ""), source,
-                                               "" if dataset == OWN_DATASET else dataset)
+    return map_from_features(_get(scenario, "map_features", source, ""), source,
+                             "" if dataset == OWN_DATASET else dataset)
+
+
+def _city_from_world(meta: Mapping, source: str) -> np.ndarray:
+    """The [3, 3] pose of the world frame in the city frame our exports record (identity for
+    other files)."""
     try:
         city_from_world = np.asarray(meta.get("scenegen_city_from_world", np.eye(3)), np.float64)
     except (TypeError, ValueError) as e:
         raise _err(source, "metadata.scenegen_city_from_world", f"not numbers ({e})") from e
     if city_from_world.shape != (3, 3) or not np.all(np.isfinite(city_from_world)):
         raise _err(source, "metadata.scenegen_city_from_world", "expected a finite 3x3 matrix")
-    scenario_id = str(scenario.get("id", meta.get("scenario_id", Path(source).stem)))
-    mismatch = bool(steps) and velocity_mismatch(list(read.values()), _step_times(scenario, length))
+    return city_from_world
 
-    out = []
-    for t in steps:
-        sf = f"{sdc_field}.state"
-        if not sdc.valid[t]:
-            raise _err(source, f"{sf}.valid[{t}]", "the SDC (ego) is not valid at this step")
-        bad = _finite_at(sdc, t)
-        if bad is not None:
-            raise _err(source, f"{sf}.{bad}[{t}]", "NaN or inf in a valid step of the SDC")
-        ego_w, ego_l = float(sdc.width[t]), float(sdc.length[t])
-        if ego_w <= 0 or ego_l <= 0:
-            raise _err(
-                source,
-                f"{sf}.width/length[{t}]",
-                f"box size must be positive, got width {ego_w}, length {ego_l}",
-            )
-        # Map features are the file's, not the frame's: counted once, in the first frame.
-        dropped = collections.Counter() if out else collections.Counter(map_dropped)
-        if ego_l < ego_w:
-            dropped["quirk:length_lt_width"] += 1
-            ego_w, ego_l = ego_l, ego_w
-        x0, y0 = sdc.position[t]
-        h0 = float(sdc.heading[t])
-        ego_from_world = rotation_matrix(-h0)
 
-        cls, pos, size, heading, vel, ids = [], [], [], [], [], []
-        for tid, tr in read.items():
-            if tid == sdc_id or not tr.valid[t]:
-                continue
-            if tr.type not in CLASS_FROM_TYPE:
-                dropped[f"type:{tr.type}"] += 1
-                continue
-            c = CLASS_FROM_TYPE[tr.type]
-            if _finite_at(tr, t) is not None:
-                dropped["invalid:nan"] += 1
-                continue
-            w, length_m = float(tr.width[t]), float(tr.length[t])
-            if c != PEDESTRIAN:
-                if w <= 0 or length_m <= 0:
-                    dropped["invalid:size"] += 1
-                    continue
-                if length_m < w:
-                    dropped["quirk:length_lt_width"] += 1
-                    w, length_m = length_m, w
-            cls.append(c)
-            pos.append(ego_from_world @ (tr.position[t] - (x0, y0)))
-            size.append((w, length_m))
-            heading.append(tr.heading[t] - h0)
-            vel.append(ego_from_world @ tr.velocity[t])
-            ids.append(tid)
-
-        vmap = world_map.transform(ego_from_world, -ego_from_world @ np.array([x0, y0]))
-        if map_radius_m is not None:
-            vmap = vmap.crop(np.zeros(2), map_radius_m)
-        n = len(cls)
-        single_step = length == 1 and "scenegen_scene_id" in meta
-        frame = Frame(
-            scene_id=str(meta["scenegen_scene_id"]) if single_step else f"{scenario_id}/{t}",
-            source=source,
-            cls=np.asarray(cls, np.int32).reshape(n),
-            position=np.asarray(pos, np.float64).reshape(n, 2),
-            size=np.asarray(size, np.float64).reshape(n, 2),
-            heading=wrap_angle(np.asarray(heading, np.float64).reshape(n)),
-            velocity=np.asarray(vel, np.float64).reshape(n, 2),
-            track_id=np.asarray(ids, dtype=str).reshape(n),
-            ego_velocity=ego_from_world @ sdc.velocity[t],
-            ego_size=np.array([ego_w, ego_l], np.float64),
-            map=vmap,
-            city_from_ego=city_from_world @ _se2(x0, y0, h0),
+def _ego_box(sdc, t: int, source: str, sf: str) -> tuple[float, float]:
+    """(width, length) m of the SDC at step t, which must be valid, finite and positive
+    (`sf`: the SDC's state field, for errors)."""
+    if not sdc.valid[t]:
+        raise _err(source, f"{sf}.valid[{t}]", "the SDC (ego) is not valid at this step")
+    bad = _finite_at(sdc, t)
+    if bad is not None:
+        raise _err(source, f"{sf}.{bad}[{t}]", "NaN or inf in a valid step of the SDC")
+    ego_w, ego_l = float(sdc.width[t]), float(sdc.length[t])
+    if ego_w <= 0 or ego_l <= 0:
+        raise _err(
+            source,
+            f"{sf}.width/length[{t}]",
+            f"box size must be positive, got width {ego_w}, length {ego_l}",
         )
-        out.append(ImportedFrame(frame, dropped))
-    if mismatch and out:
-        out[0].dropped["quirk:velocity_mismatch"] += 1
-    if no_ego:
-        out[0].dropped["frame:no_ego"] += no_ego
-    return out
+    return ego_w, ego_l
+
+
+def _actors_at(t: int, read: dict, sdc_id: str, ego_from_world: np.ndarray, origin, h0: float,
+               dropped: collections.Counter) -> tuple[list, ...]:
+    """(classes, positions, sizes, headings, velocities, track ids) in the ego frame (the SDC
+    at `origin` in the world, heading h0) of the tracks valid at step t but the SDC; those
+    dropped are counted in `dropped` (`frames_from_scenario`)."""
+    cls, pos, size, heading, vel, ids = [], [], [], [], [], []
+    for tid, tr in read.items():
+        if tid == sdc_id or not tr.valid[t]:
+            continue
+        if tr.type not in CLASS_FROM_TYPE:
+            dropped[f"type:{tr.type}"] += 1
+            continue
+        c = CLASS_FROM_TYPE[tr.type]
+        if _finite_at(tr, t) is not None:
+            dropped["invalid:nan"] += 1
+            continue
+        w, length_m = float(tr.width[t]), float(tr.length[t])
+        if c != PEDESTRIAN:
+            if w <= 0 or length_m <= 0:
+                dropped["invalid:size"] += 1
+                continue
+            if length_m < w:
+                dropped["quirk:length_lt_width"] += 1
+                w, length_m = length_m, w
+        cls.append(c)
+        pos.append(ego_from_world @ (tr.position[t] - origin))
+        size.append((w, length_m))
+        heading.append(tr.heading[t] - h0)
+        vel.append(ego_from_world @ tr.velocity[t])
+        ids.append(tid)
+    return cls, pos, size, heading, vel, ids
+
+
+def _frame_at(t: int, read: dict, sdc_id: str, ego_size: tuple[float, float], world_map,
+              city_from_world: np.ndarray, scene_id: str, source: str,
+              map_radius_m: float | None, dropped: collections.Counter) -> Frame:
+    """The Frame of step t in the SDC's ego frame (the ego's box `ego_size` (width, length)
+    m, already checked), its map cropped to `map_radius_m` if given."""
+    sdc = read[sdc_id]
+    x0, y0 = sdc.position[t]
+    h0 = float(sdc.heading[t])
+    ego_from_world = rotation_matrix(-h0)
+    cls, pos, size, heading, vel, ids = _actors_at(t, read, sdc_id, ego_from_world, (x0, y0),
+                                                   h0, dropped)
+    vmap = world_map.transform(ego_from_world, -ego_from_world @ np.array([x0, y0]))
+    if map_radius_m is not None:
+        vmap = vmap.crop(np.zeros(2), map_radius_m)
+    n = len(cls)
+    return Frame(
+        scene_id=scene_id,
+        source=source,
+        cls=np.asarray(cls, np.int32).reshape(n),
+        position=np.asarray(pos, np.float64).reshape(n, 2),
+        size=np.asarray(size, np.float64).reshape(n, 2),
+        heading=wrap_angle(np.asarray(heading, np.float64).reshape(n)),
+        velocity=np.asarray(vel, np.float64).reshape(n, 2),
+        track_id=np.asarray(ids, dtype=str).reshape(n),
+        ego_velocity=ego_from_world @ sdc.velocity[t],
+        ego_size=np.array(ego_size, np.float64),
+        map=vmap,
+        city_from_ego=city_from_world @ _se2(x0, y0, h0),
+    )
 
 
 def scenario_files(root: str | os.PathLike) -> list[Path]:

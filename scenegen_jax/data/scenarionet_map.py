@@ -270,6 +270,30 @@ def map_from_features(map_features: Mapping, source: str,
     if not isinstance(map_features, Mapping):
         raise _err(source, "map_features", f"expected a dict, got {type(map_features).__name__}")
     dropped: collections.Counter = collections.Counter()
+    kinds = _feature_kinds(map_features, source, dropped)
+    line_ids = {str(fid) for fid, kind in kinds.items() if kind in ("line", "edge")}
+    lane_ids = _lane_ids([fid for fid, kind in kinds.items() if kind == "lane"])
+    parts = _Parts()
+    for fid, kind in kinds.items():
+        if kind == "lane":
+            _read_lane(fid, map_features, lane_ids, line_ids, parts, dropped, source)
+        elif kind != "lane_boundary":  # our lane-boundary features are part of their lanes
+            _read_feature(fid, kind, map_features[fid], parts, dropped, source)
+    outlined, lane_areas = _outline(parts.real, parts.lines)
+    vmap = VectorMap(
+        lanes=tuple(parts.exact) + tuple(outlined),
+        crosswalks=tuple(parts.crosswalks),
+        drivable_areas=tuple(parts.own_drivable) + tuple(lane_areas) + tuple(parts.driveways),
+        lines=tuple(parts.lines),
+        dataset=dataset,
+    )
+    return vmap, dropped
+
+
+def _feature_kinds(map_features: Mapping, source: str,
+                   dropped: collections.Counter) -> dict[Any, str]:
+    """How each feature is read (`_feature_kind`), by id in file order; the features a
+    VectorMap cannot hold are counted in `dropped`."""
     kinds: dict[Any, str] = {}
     for fid, feature in map_features.items():
         ftype = _get(feature, "type", source, f"map_features[{fid!r}]")
@@ -281,73 +305,90 @@ def map_from_features(map_features: Mapping, source: str,
             dropped[f"map:{ftype}"] += 1
         else:
             kinds[fid] = kind
-    lane_keys = [fid for fid, kind in kinds.items() if kind == "lane"]
-    line_ids = {str(fid) for fid, kind in kinds.items() if kind in ("line", "edge")}
-    # Integer lane ids when the file's ids are canonical integers (Argoverse, Waymo, ours);
-    # otherwise (nuScenes, nuPlan tokens) ids are positions in file order.
-    as_int = [_canonical_int(k) for k in lane_keys]
-    int_ids = all(i is not None for i in as_int) and len(set(as_int)) == len(as_int)
-    if int_ids:
-        id_of = {str(k): i for k, i in zip(lane_keys, as_int, strict=True)}
-    else:
-        id_of = {str(k): n for n, k in enumerate(lane_keys)}
+    return kinds
 
-    def link_ids(value: Any) -> tuple[int, ...]:
+
+class _LaneIds(NamedTuple):
+    """Lane ids of a file: integer ids when the file's are canonical integers (Argoverse,
+    Waymo, ours), otherwise (nuScenes, nuPlan tokens) positions in file order."""
+
+    int_ids: bool
+    id_of: dict[str, int]  # by the feature id as a string
+
+    def links(self, value: Any) -> tuple[int, ...]:
+        """The lane ids of a list of linked features (`entry_lanes`, `exit_lanes`)."""
         # Integer ids keep links to lanes outside this file (as a cropped Argoverse map does);
         # enumerated ids can only name lanes that are in it.
         if not isinstance(value, (list, tuple, np.ndarray)):
             return ()
-        if int_ids:
+        if self.int_ids:
             ints = (_canonical_int(x) for x in value)
             return tuple(i for i in ints if i is not None)
-        return tuple(id_of[str(x)] for x in value if str(x) in id_of)
+        return tuple(self.id_of[str(x)] for x in value if str(x) in self.id_of)
 
-    exact, real, lines, crosswalks, own_drivable, driveways = [], [], [], [], [], []
-    for fid, kind in kinds.items():
-        feature = map_features[fid]
-        field = f"map_features[{fid!r}]"
-        ftype = feature["type"]
-        if kind == "lane":
-            links = (link_ids(feature.get("exit_lanes")), link_ids(feature.get("entry_lanes")))
-            lane_id = id_of[str(fid)]
-            if "scenegen_left" in feature and "scenegen_right" in feature:
-                exact.append(_exact_lane(fid, feature, lane_id, links, source))
-                continue
-            lane = _real_lane(fid, feature, lane_id, links, map_features, line_ids, source)
-            if lane is None:
-                dropped["map:degenerate_lane"] += 1
-            else:
-                real.append(lane)
-                if lane.width_unusable:
-                    dropped["quirk:lane_width_unusable"] += 1
-        elif kind == "lane_boundary":
-            continue
-        elif kind == "own_line":
-            points = _polyline(feature.get("scenegen_points"), source, f"{field}.scenegen_points")
-            lines.append(RoadLine(points, str(feature.get("scenegen_mark", "UNKNOWN"))))
-        elif kind in ("line", "edge"):
-            points = _dedupe(_geometry(feature, ("polyline", "polygon"), source, field))
-            if len(points) < 2:
-                dropped[f"map:degenerate_{kind}"] += 1
-            elif kind == "edge":
-                lines.append(RoadLine(points, ROAD_EDGE))
-            else:
-                lines.append(RoadLine(points, MARK_FROM_LINE_TYPE.get(ftype, "UNKNOWN")))
-        elif "scenegen_polygon" in feature:  # our own crosswalks and drivable areas: exact
-            poly = _polyline(feature["scenegen_polygon"], source, f"{field}.scenegen_polygon", 3)
-            (own_drivable if kind == "drivable_area" else crosswalks).append(poly)
-        else:  # a converter's crosswalk or driveway
-            ring = _ring(_geometry(feature, ("polygon", "polyline"), source, field))
-            if _distinct_points(ring) < 3:
-                dropped[f"map:degenerate_{kind}"] += 1
-            else:
-                (crosswalks if kind == "crosswalk" else driveways).append(ring)
-    outlined, lane_areas = _outline(real, lines)
-    vmap = VectorMap(
-        lanes=tuple(exact) + tuple(outlined),
-        crosswalks=tuple(crosswalks),
-        drivable_areas=tuple(own_drivable) + tuple(lane_areas) + tuple(driveways),
-        lines=tuple(lines),
-        dataset=dataset,
-    )
-    return vmap, dropped
+
+def _lane_ids(lane_keys: list) -> _LaneIds:
+    as_int = [_canonical_int(k) for k in lane_keys]
+    int_ids = all(i is not None for i in as_int) and len(set(as_int)) == len(as_int)
+    if int_ids:
+        return _LaneIds(True, {str(k): i for k, i in zip(lane_keys, as_int, strict=True)})
+    return _LaneIds(False, {str(k): n for n, k in enumerate(lane_keys)})
+
+
+@dataclasses.dataclass
+class _Parts:
+    """A map's parts as read, in file order."""
+
+    exact: list = dataclasses.field(default_factory=list)  # Lanes of our own exports
+    real: list = dataclasses.field(default_factory=list)  # _RealLanes of converters
+    lines: list = dataclasses.field(default_factory=list)  # RoadLines
+    crosswalks: list = dataclasses.field(default_factory=list)  # polygons
+    own_drivable: list = dataclasses.field(default_factory=list)  # our drivable polygons
+    driveways: list = dataclasses.field(default_factory=list)  # converters' polygons
+
+
+def _read_lane(fid: Any, map_features: Mapping, lane_ids: _LaneIds, line_ids: set[str],
+               parts: _Parts, dropped: collections.Counter, source: str) -> None:
+    """Adds lane feature `fid` to `parts`: exactly where it is ours, else as a converter's
+    centreline; a degenerate one and an unusable `width` are counted in `dropped`."""
+    feature = map_features[fid]
+    links = (lane_ids.links(feature.get("exit_lanes")), lane_ids.links(feature.get("entry_lanes")))
+    lane_id = lane_ids.id_of[str(fid)]
+    if "scenegen_left" in feature and "scenegen_right" in feature:
+        parts.exact.append(_exact_lane(fid, feature, lane_id, links, source))
+        return
+    lane = _real_lane(fid, feature, lane_id, links, map_features, line_ids, source)
+    if lane is None:
+        dropped["map:degenerate_lane"] += 1
+    else:
+        parts.real.append(lane)
+        if lane.width_unusable:
+            dropped["quirk:lane_width_unusable"] += 1
+
+
+def _read_feature(fid: Any, kind: str, feature: Mapping, parts: _Parts,
+                  dropped: collections.Counter, source: str) -> None:
+    """Adds a feature of any kind but a lane's (`_feature_kind`) to `parts`; geometry too
+    short to use is counted in `dropped`."""
+    field = f"map_features[{fid!r}]"
+    ftype = feature["type"]
+    if kind == "own_line":
+        points = _polyline(feature.get("scenegen_points"), source, f"{field}.scenegen_points")
+        parts.lines.append(RoadLine(points, str(feature.get("scenegen_mark", "UNKNOWN"))))
+    elif kind in ("line", "edge"):
+        points = _dedupe(_geometry(feature, ("polyline", "polygon"), source, field))
+        if len(points) < 2:
+            dropped[f"map:degenerate_{kind}"] += 1
+        elif kind == "edge":
+            parts.lines.append(RoadLine(points, ROAD_EDGE))
+        else:
+            parts.lines.append(RoadLine(points, MARK_FROM_LINE_TYPE.get(ftype, "UNKNOWN")))
+    elif "scenegen_polygon" in feature:  # our own crosswalks and drivable areas: exact
+        poly = _polyline(feature["scenegen_polygon"], source, f"{field}.scenegen_polygon", 3)
+        (parts.own_drivable if kind == "drivable_area" else parts.crosswalks).append(poly)
+    else:  # a converter's crosswalk or driveway
+        ring = _ring(_geometry(feature, ("polygon", "polyline"), source, field))
+        if _distinct_points(ring) < 3:
+            dropped[f"map:degenerate_{kind}"] += 1
+        else:
+            (parts.crosswalks if kind == "crosswalk" else parts.driveways).append(ring)

@@ -11,13 +11,13 @@ import numpy as np
 
 from scenegen_jax.config import Config
 from scenegen_jax.data.cache import (
-    ACTOR_FIELDS,
     Cache,
     StackedMaps,
     check_compatible,
     load_cache,
     stack_caches,
 )
+from scenegen_jax.data.cache_layout import ACTOR_FIELDS
 from scenegen_jax.scene import Actors, make_ego
 
 

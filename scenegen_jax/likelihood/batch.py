@@ -11,7 +11,8 @@ import jax
 import numpy as np
 
 from scenegen_jax.config import Config
-from scenegen_jax.data.cache import ACTOR_FIELDS, Cache
+from scenegen_jax.data.cache import Cache
+from scenegen_jax.data.cache_layout import ACTOR_FIELDS
 from scenegen_jax.data.union import CacheUnion
 from scenegen_jax.raster.transform import scene_from_cached
 from scenegen_jax.scene import Actors

@@ -10,14 +10,14 @@ trace time (Python loops): it runs convolution gradients inside while loops and 
 window's on accelerators, run as a `lax.scan` (`backend.compiled_step_loop`): a few steps are
 compiled instead of a window's worth. Windows run through `scan_windows`: a Python loop on
 CPU, a `lax.scan` (one window compiled) on accelerators. The train step takes each window's
-gradient right after that window (`unroll_terms_and_grads`), so it holds one window's
-activations. An unroll without a gradient (the scorer) has nothing to truncate: its steps run
-as one window, so that one compiled loop serves the whole scene (the shipped `cpu` model's two
-windows compiled in 12.0 s, one in 8.8 s; bench/README.md, session 53). Every window always
-runs, so `cfg.max_actors` should fit the data (overflow is counted).
+gradient right after that window (`likelihood.grads`), so it holds one window's activations.
+An unroll without a gradient (the scorer) has nothing to truncate: its steps run as one
+window, so that one compiled loop serves the whole scene (it compiles faster than a loop
+over windows). Every window always runs, so `cfg.max_actors` should fit the data
+(overflow is counted).
 
-Inside a window (the fast path; measurements in bench/README.md; `_unrolled_steps` in the CPU
-train step, elsewhere `_scanned_steps`, the same mathematics as a loop over the steps):
+Inside a window (the fast path; `_unrolled_steps` in the CPU train step, elsewhere
+`_scanned_steps`, the same mathematics as a loop over the steps):
   * the map share of layer 1's input convolution is computed once per scene (`map_gates`),
     so its weight gradient is one convolution over the gradients summed over steps;
   * per step: the actor share of layer 1's input gates, updated by a convolution over the
@@ -25,7 +25,7 @@ train step, elsewhere `_scanned_steps`, the same mathematics as a loop over the 
     share with `order_channel` (`SceneGenNet.order_gates`), and the recurrence;
   * the backbone and the conv heads run on chunks of consecutive steps whose activations fit
     in cache (`head_chunk`; one step at the paper's width and grid): batching a whole window
-    made XLA:CPU's convolutions 2-4x slower once the batch left the cache;
+    makes XLA:CPU's convolutions several times slower once the batch leaves the cache;
   * the location head runs only for the class scored at each step;
   * where the first window's start is static (windows in a Python loop: XLA:CPU, or a
     single window), a scene's first step skips the recurrent convolutions of the zero
@@ -34,9 +34,9 @@ train step, elsewhere `_scanned_steps`, the same mathematics as a loop over the 
   * with `cfg.remat` (true; "auto" is made true or false by `train.step.resolve_remat`
     before a train step is built, and counts as true unresolved), a chunk's backbone and
     heads are recomputed in the backward pass instead of stored (`recompute_in_backward`),
-    each one chunk late so that the recomputation overlaps the next chunk's recurrence: at
-    the paper's width, grid 128, T 25, the step's temporaries drop from 2.1 to 0.9 GiB for
-    1-7 % more time on 2 CPU cores (bench/README.md).
+    each one chunk late so that the recomputation overlaps the next chunk's recurrence: the
+    step's temporaries drop to less than half for a few per cent more time
+    (docs/performance.md, Remat).
 `tests/reference_unroll.py` holds the plain per-step version it is tested against.
 """
 
@@ -83,8 +83,8 @@ def _step_targets(actors: Actors, n_actors, complete, t):
     return actors.replace(cls=cls), is_stop, valid
 
 
-# Bytes of backbone activations per chunk of steps: XLA:CPU's convolutions slow down 2-4x
-# (weight gradients most) once a batch no longer fits in cache (bench/README.md).
+# Bytes of backbone activations per chunk of steps: XLA:CPU's convolutions slow down several
+# times (weight gradients most) once a batch no longer fits in cache.
 HEAD_CHUNK_BYTES = 2 * 2**20
 
 
@@ -177,7 +177,7 @@ def scan_windows(body, init, windows: int):
     return carry, jax.tree.map(lambda *x: jnp.stack(x), *outs)
 
 
-class _Scenes(NamedTuple):
+class Scenes(NamedTuple):
     """What every window of a batch of scenes reads: actors padded to whole windows [B, T],
     actor counts [B], whether each scene is complete [B] (`Scene.complete`), each step's
     previous actor's bin [B, T] (0 at the first step; the `order_channel` input), the map
@@ -193,7 +193,7 @@ class _Scenes(NamedTuple):
     state0: Any
 
 
-def _scenes(params, cfg: Config, maps, scene: Scene) -> _Scenes:
+def prepare_scenes(params, cfg: Config, maps, scene: Scene) -> Scenes:
     net = SceneGenNet(cfg)
     b = scene.ego.cls.shape[0]
     raster0 = _draw(cfg)(
@@ -203,7 +203,7 @@ def _scenes(params, cfg: Config, maps, scene: Scene) -> _Scenes:
     )
     actors = _pad_slots(scene.actors, num_windows(cfg) * cfg.bptt_window)
     bins = bin_index(actors.position, cfg)
-    return _Scenes(
+    return Scenes(
         actors=actors,
         n_actors=jnp.sum(scene.actors.valid, axis=1),
         complete=jnp.broadcast_to(jnp.asarray(scene.complete, bool), (b,)),
@@ -214,7 +214,7 @@ def _scenes(params, cfg: Config, maps, scene: Scene) -> _Scenes:
     )
 
 
-def window_terms(params, map_gates, carry, start, scenes: _Scenes, cfg: Config,
+def window_terms(params, map_gates, carry, start, scenes: Scenes, cfg: Config,
                  hard_negatives: int | None, differentiated: bool = True):
     """One window: the `cfg.bptt_window` steps from step `start` (may be traced), given the
     carried (ConvLSTM state, actor raster); returns (carry, terms name -> [B, W], zero at
@@ -356,7 +356,7 @@ def _scanned_steps(net, params, map_gates, state, raster, win: Actors, cls, bins
     return heads, state, raster_end
 
 
-def _join_windows(terms: dict, scenes: _Scenes):
+def join_windows(terms: dict, scenes: Scenes):
     """terms name -> [windows, B, W] as (terms [B, T], step_valid [B, T], step_cls [B, T])."""
     terms = {k: jnp.concatenate(list(v), axis=1) for k, v in terms.items()}
     is_stop, step_valid = _stop_and_valid(scenes.n_actors, scenes.complete,
@@ -383,7 +383,7 @@ def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | 
     """
     if not differentiated:  # no gradient to truncate: the same T steps as one window
         cfg = cfg.replace(bptt_window=num_windows(cfg) * cfg.bptt_window)
-    scenes = _scenes(params, cfg, maps, scene)
+    scenes = prepare_scenes(params, cfg, maps, scene)
     map_gates = SceneGenNet(cfg).apply({"params": params}, maps, method=SceneGenNet.map_gates)
 
     def window(carry, index):
@@ -392,108 +392,4 @@ def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | 
                             hard_negatives, differentiated)
 
     _, terms = scan_windows(window, (scenes.state0, scenes.raster0), num_windows(cfg))
-    return _join_windows(terms, scenes)
-
-
-def map_gates_and_vjp(params, cfg: Config, maps):
-    """The map share of layer 1's input gates [B, H, W, 4h] (computed once per scene) and its
-    vjp with respect to the parameters."""
-    net = SceneGenNet(cfg)
-    return jax.vjp(lambda p: net.apply({"params": p}, maps, method=SceneGenNet.map_gates),
-                   params)
-
-
-def grads_prologue(params, cfg: Config, maps, scene: Scene, map_gates):
-    """What every window of `unroll_terms_and_grads` reads, and the first window's
-    accumulator: (scenes, ((zero ConvLSTM state, ego-only raster), zero parameter gradients,
-    zero map-gate gradient))."""
-    scenes = _scenes(params, cfg, maps, scene)
-    acc = ((scenes.state0, scenes.raster0), jax.tree.map(jnp.zeros_like, params),
-           jnp.zeros_like(map_gates))
-    return scenes, acc
-
-
-def window_grads(params, map_gates, scenes: _Scenes, cfg: Config, scale, acc, index):
-    """One window of `unroll_terms_and_grads`: (accumulator with this window's carry and
-    gradients added, the window's terms). `index` is the window's number, static (a scene's
-    first window then skips the zero state's recurrent convolutions) or traced."""
-    carry, g_params, g_map = acc
-
-    def loss(p, gates):
-        out, terms = window_terms(p, gates, carry, index * cfg.bptt_window, scenes, cfg,
-                                  cfg.hard_negatives)
-        return -scale * sum(jnp.sum(v) for v in terms.values()), (out, terms)
-
-    (_, (carry, terms)), (gp, gm) = jax.value_and_grad(loss, (0, 1), has_aux=True)(
-        params, map_gates
-    )
-    # The next window starts once this one's backward is done (a zero taken from its
-    # gradient: XLA does not fold 0 * x for floats), so unrolled windows (CPU) also hold
-    # one window's activations at a time. A NaN gradient would make the later windows
-    # NaN as well: that step is lost either way.
-    zero = 0.0 * gm.ravel()[0]
-    carry = jax.tree.map(lambda x: x + zero.astype(x.dtype), carry)
-    return (carry, jax.tree.map(jnp.add, g_params, gp), g_map + gm), terms
-
-
-def chunk_steps(cfg: Config) -> int:
-    """Steps of a window that one call of `chunk_forward` runs when a train step goes chunk by
-    chunk (`train.step.SplitTrainStep`): the largest divisor of `cfg.bptt_window` up to
-    `backend.SPLIT_CHUNK_STEPS`."""
-    return max(d for d in range(1, backend.SPLIT_CHUNK_STEPS + 1) if cfg.bptt_window % d == 0)
-
-
-def chunk_forward(params, map_gates, scenes: _Scenes, cfg: Config, scale, carry, start):
-    """The `chunk_steps(cfg)` steps of a window from step `start` (traced) given the carried
-    (ConvLSTM state, actor raster): (carry after them, their terms name -> [B, steps], vjp).
-    `vjp(g_carry)` -> (parameter gradient, map-gate gradient, carry cotangent) of
-    -scale * (sum of the chunk's terms) plus <g_carry, carry after>: chained from a window's
-    last chunk (g_carry zero: no gradient across windows) to its first, the chunks' gradients
-    add up to `window_grads`'s (tested). vjp is a `jax.tree_util.Partial` holding the chunk's
-    activations, so it leaves one compiled program and enters another (`chunk_backward`)."""
-    sub = cfg.replace(bptt_window=chunk_steps(cfg))
-
-    def loss(p, gates, c):
-        out, terms = window_terms(p, gates, c, start, scenes, sub, cfg.hard_negatives)
-        return (out, -scale * sum(jnp.sum(v) for v in terms.values())), terms
-
-    (carry, _), vjp, terms = jax.vjp(loss, params, map_gates, carry, has_aux=True)
-    return carry, terms, vjp
-
-
-def chunk_backward(vjp, g_carry, g_params, g_map):
-    """A chunk's backward pass (`chunk_forward`'s vjp): (g_params and g_map with the chunk's
-    gradients added, the cotangent of the carry the chunk started from)."""
-    gp, gm, g_carry = vjp((g_carry, jnp.ones((), jnp.float32)))
-    return jax.tree.map(jnp.add, g_params, gp), g_map + gm, g_carry
-
-
-def grads_epilogue(map_vjp, scenes: _Scenes, acc, terms: dict):
-    """(unrolled terms as `unroll_terms`, parameter gradient) from the last window's
-    accumulator and every window's terms (name -> [windows, B, W]; or every chunk's, name ->
-    [chunks, B, steps], in step order): the map-gate gradient, summed over the windows, taken
-    through the map convolution (`map_vjp`) once."""
-    _, g_params, g_map = acc
-    (g_from_map,) = map_vjp(g_map)
-    return _join_windows(terms, scenes), jax.tree.map(jnp.add, g_params, g_from_map)
-
-
-def unroll_terms_and_grads(params, cfg: Config, maps, scene: Scene, scale):
-    """`unroll_terms` with the training normaliser, and the gradient of
-    -scale * (sum of all terms) with respect to params, computed window by window.
-
-    No gradient crosses a window boundary (truncated BPTT), so each window's backward pass
-    runs right after its forward pass (`window_grads`), in a `lax.scan` over the windows: on
-    an accelerator the train step holds one window's activations and compiles one window,
-    whatever `cfg.max_actors` (the `paper` preset has 6 windows; on CPU the windows are
-    unrolled, `scan_windows`). The map share of layer 1's input gates is still computed
-    once per scene; its gradient is summed over the windows and taken through the map
-    convolution once. Equal to `jax.grad` of that sum through `unroll_terms` (tested).
-    `train.step.SplitTrainStep` runs `grads_prologue` and `grads_epilogue` as programs of
-    their own, and each window as chunks (`chunk_forward`, `chunk_backward`).
-    """
-    map_gates, map_vjp = map_gates_and_vjp(params, cfg, maps)
-    scenes, acc = grads_prologue(params, cfg, maps, scene, map_gates)
-    body = functools.partial(window_grads, params, map_gates, scenes, cfg, scale)
-    acc, terms = scan_windows(body, acc, num_windows(cfg))
-    return grads_epilogue(map_vjp, scenes, acc, terms)
+    return join_windows(terms, scenes)

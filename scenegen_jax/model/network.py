@@ -5,32 +5,36 @@ The network is split into methods so the teacher-forced unroll can be fast (see
 `scenegen_jax.likelihood.unroll`): the first ConvLSTM layer's input convolution is linear in its
 input, so conv(map ++ actors ++ h1) = conv_map(map) + conv_actors(actors) + conv_rec(h1).
 The map part is computed once per scene. The backbone and heads do not feed back into the
-recurrence, so the unroll can run them on chunks of steps.
+recurrence, so the unroll can run them on chunks of steps. Its layers are in `model.layers`,
+the cell update in `model.convlstm`, the initial values in `model.initializers`.
 
 All arrays are NHWC; leading axes beyond one batch axis are flattened by the caller.
 """
 
 from __future__ import annotations
 
-import functools
-
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import errors
-from jax.scipy import special
 
-from scenegen_jax.backend import (
-    compiled_init,
-    explicit_conv_gradients,
-    weight_gradient_bands,
-    winograd_convolutions,
-)
+from scenegen_jax.backend import compiled_init
 from scenegen_jax.config import Config
 from scenegen_jax.distributions import params as P
-from scenegen_jax.distributions import uniforms
-from scenegen_jax.model import winograd
+from scenegen_jax.model.convlstm import lstm_gates
+from scenegen_jax.model.initializers import (
+    InitialDraws,
+    attribute_bias_rows,
+    bias_init,
+)
+from scenegen_jax.model.layers import (
+    conv,
+    conv_per_example,
+    conv_sum,
+    group_norm,
+    per_class_mlp,
+)
 from scenegen_jax.raster.actors import NUM_ACTOR_CHANNELS, window_origin, window_size
 from scenegen_jax.raster.map import NEAREST_LANE_CHANNELS, ORIENTATION_CHANNELS
 from scenegen_jax.scene import NUM_CLASSES
@@ -55,307 +59,26 @@ def orientation_sectors(cos, sin, k: int):
     return jnp.hypot(cos, sin)[..., None] * jnp.maximum(0.0, 1.0 - d)
 
 
-def _conv(x, w, padding="SAME"):
-    return jax.lax.conv_general_dilated(
-        x, w, (1, 1), padding, dimension_numbers=("NHWC", "HWIO", "NHWC")
-    )
-
-
-def _band_starts(rows: int, band_rows: int) -> list[int]:
-    """First rows of `ceil(rows / band_rows)` bands whose sizes differ by at most one row,
-    then `rows`."""
-    n = -(-rows // band_rows)
-    return [i * rows // n for i in range(n)] + [rows]
-
-
-def _same_pads(w) -> list[tuple[int, int]]:
-    """'SAME' padding of the two spatial axes for kernel w [kh, kw, Ci, Co]."""
-    return [((k - 1) // 2, k // 2) for k in w.shape[:2]]
-
-
-def _conv_input_grad(g, w):
-    """The input gradient of `_conv(x, w)` for the output gradient g [B, H, W, Co]: g
-    convolved with the kernel turned by 180 degrees and its features swapped, written in the
-    form XLA:CPU hands to its convolution library (NHWC, HWIO)."""
-    pads = [(hi, lo) for lo, hi in _same_pads(w)]
-    return _conv(g, jnp.flip(w, (0, 1)).swapaxes(2, 3), padding=pads)
-
-
-def _conv_weight_grad(xp, g):
-    """The weight gradient [kh, kw, Ci, Co] of the 'VALID' convolution of the padded input
-    xp [B, H + kh - 1, W + kw - 1, Ci] for its output gradient g [B, H, W, Co], in the same
-    library form: x's features as the batch, the batch as the features."""
-    return _conv(xp.transpose(3, 1, 2, 0), g.transpose(1, 2, 0, 3), padding="VALID").transpose(
-        1, 2, 0, 3)
-
-
-@functools.partial(jax.custom_vjp, nondiff_argnums=(2,))
-def _banded_conv(x, w, band_rows: int):
-    """`_conv(x, w)` whose gradients are written in the convolution library's form, the
-    weight gradient summed over bands of at most `band_rows` rows of the input (each with the
-    kernel's halo)."""
-    return _conv(x, w)
-
-
-def _banded_conv_fwd(x, w, band_rows):
-    return _conv(x, w), (x, w)
-
-
-def _banded_conv_bwd(band_rows, res, g):
-    x, w = res
-    xp = jnp.pad(x, [(0, 0), *_same_pads(w), (0, 0)])
-    kh = w.shape[0]
-    starts = _band_starts(x.shape[1], band_rows)
-    dw = jnp.zeros_like(w)
-    for lo, hi in zip(starts[:-1], starts[1:], strict=True):
-        band = jax.lax.slice_in_dim(xp, lo, hi + kh - 1, axis=1)  # the band and its halo
-        dw = dw + _conv_weight_grad(band, jax.lax.slice_in_dim(g, lo, hi, axis=1))
-    return _conv_input_grad(g, w), dw
-
-
-_banded_conv.defvjp(_banded_conv_fwd, _banded_conv_bwd)
-
-
-def _direct_conv(x, w):
-    """'SAME' stride-1 convolution, x [B, H, W, Ci], w [kh, kw, Ci, Co]. Where the backend
-    bands weight gradients (`backend.weight_gradient_bands`) and x has more rows than its
-    threshold, the weight gradient is summed over row bands; where it wants the gradients in
-    its library's form (`backend.explicit_conv_gradients`), they are written so (one band)."""
-    bands = weight_gradient_bands()
-    if bands is not None and x.shape[1] > bands[0]:
-        return _banded_conv(x, w, bands[1])
-    if explicit_conv_gradients():
-        return _banded_conv(x, w, x.shape[1])
-    return _conv(x, w)
-
-
-@jax.custom_vjp
-def _winograd_conv_sum(xs, ws):
-    return winograd.conv_sum(xs, ws)
-
-
-def _winograd_conv_sum_fwd(xs, ws):
-    return winograd.conv_sum(xs, ws), (xs, ws)
-
-
-def _winograd_conv_sum_bwd(res, g):
-    """The direct convolutions' gradients: Winograd's forward pass only."""
-    xs, ws = res
-    grads = [jax.vjp(_direct_conv, x, w)[1](g) for x, w in zip(xs, ws, strict=True)]
-    return tuple(gx for gx, _ in grads), tuple(gw for _, gw in grads)
-
-
-_winograd_conv_sum.defvjp(_winograd_conv_sum_fwd, _winograd_conv_sum_bwd)
-
-
-def conv_sum(terms, b=None):
-    """sum of conv(x, w) over terms [(x, w), ...] (see `conv`), plus b. Where the backend
-    takes Winograd's algorithm for these kernels (`backend.winograd_convolutions`), the sum is
-    one Winograd convolution over the inputs' joined channels (gradients: the direct ones)."""
-    xs, ws = (tuple(t) for t in zip(*terms, strict=True))
-    if winograd_convolutions(ws[0].shape[:2], winograd.tiles(xs[0].shape)) and all(
-            w.shape[:2] == ws[0].shape[:2] for w in ws):
-        y = _winograd_conv_sum(xs, ws)
-    else:
-        y = functools.reduce(jnp.add, [_direct_conv(x, w) for x, w in terms])
-    return y if b is None else y + b
-
-
-def conv(x, w, b=None):
-    """'SAME' stride-1 convolution, x [B, H, W, Ci], w [kh, kw, Ci, Co], plus b: direct
-    (`_direct_conv`) or, where the backend takes it for this kernel and input size, Winograd's
-    F(4, r) forward pass (`conv_sum`)."""
-    return conv_sum([(x, w)], b)
-
-
-def conv_per_example(x, w, b):
-    """'SAME' convolution with a different kernel per example: x [M, H, W, Ci],
-    w [M, kh, kw, Ci, Co], b [M, Co].
-
-    Written as a sum of shifted batched matmuls: XLA:CPU's vmapped (grouped) convolution has a
-    pathologically slow weight gradient, while batched matmuls differentiate efficiently.
-    """
-    kh, kw = w.shape[1:3]
-    h, wd = x.shape[1:3]
-    xp = jnp.pad(x, ((0, 0), (kh // 2, kh // 2), (kw // 2, kw // 2), (0, 0)))
-    out = b[:, None, None, :]
-    for dy in range(kh):
-        for dx in range(kw):
-            out = out + jnp.einsum("mhwi,mio->mhwo", xp[:, dy : dy + h, dx : dx + wd], w[:, dy, dx])
-    return out
-
-
-def group_norm(x, groups: int, scale, bias, eps: float = 1e-5):
-    """GroupNorm over (H, W, channels of a group) of x [B, H, W, C]; scale and bias broadcast
-    against [B, 1, 1, C].
-
-    Each statistic is reduced over H and W first, channels staying the contiguous axis, then
-    over each group's channels: XLA:CPU reduced the grouped 5-D view [B, H, W, G, C/G] 4x
-    slower, forward and backward (bench/README.md).
-    """
-    b, _, _, c = x.shape
-    size = c // groups
-
-    def group_mean(y):  # [B, H, W, C] -> each channel's group mean, [B, 1, 1, C]
-        m = jnp.mean(y, axis=(1, 2)).reshape(b, groups, size).mean(-1)
-        return jnp.repeat(m, size, axis=-1)[:, None, None, :]
-
-    centred = x - group_mean(x)
-    return centred * (jax.lax.rsqrt(group_mean(jnp.square(centred)) + eps) * scale) + bias
-
-
-def _bias_init(row):
-    """Initialiser of a last layer's bias [n, len(row)]: `row` for every class."""
-    row = np.asarray(row)
-
-    def f(key, shape, dtype=jnp.float32):
-        del key
-        if shape[-1] != row.shape[0]:
-            raise ValueError(f"attribute bias: shape {shape} does not end in {row.shape[0]}")
-        return jnp.broadcast_to(jnp.asarray(row, dtype), shape)
-
-    return f
-
-
-def _attribute_bias_rows(k: int):
-    """Initial biases of the last attribute layers (box, heading, velocity): box zeros, then
-    the heading and velocity starts of `distributions.params` (near-uniform, evenly spread
-    mixtures)."""
-    return np.zeros(P.box_params_size(k)), P.initial_heading_bias(k), P.initial_velocity_bias(k)
-
-
-def _mlp(x, ws, bs, cls):
-    """A per-class MLP on x [B, i]: layer l uses ws[l][cls], bs[l][cls]; ReLU between."""
-    for i, (w, b) in enumerate(zip(ws, bs, strict=True)):
-        x = jnp.einsum("bi,bio->bo", x, w[cls]) + b[cls]
-        if i < len(ws) - 1:
-            x = jax.nn.relu(x)
-    return x
-
-
-# Values per PRNG call of the initial parameters (`InitialDraws`).
-INIT_BLOCK = 1 << 20
-# The standard deviation of a standard normal truncated to [-2, 2] (jax.nn.initializers).
-TRUNCATED_STD = 0.87962566103423978
-
-
-class InitialDraws:
-    """The random initial parameters' values, from one PRNG call per `INIT_BLOCK` values of
-    each distribution, handed out in the order the parameters are created. Each `jax.random`
-    call compiles its own kernels: a call per parameter (flax's initialisers) made `tiny`'s
-    initialisation program compile in 2.7 s on a slow Xeon (bench/README.md, session 45).
-    So a parameter's values depend on the seed and on the parameters created before it (the
-    config), not on its name alone; their distributions are flax's (`variance_scaling`)."""
-
-    def __init__(self, key: jax.Array | None):
-        self._key = key  # None where the network reads stored parameters (see `_standard`)
-        self._blocks = 0
-        self._left: dict[str, jnp.ndarray] = {}
-
-    def _standard(self, distribution: str, n: int) -> jnp.ndarray:
-        """n standard draws: "normal", or "truncated_normal" (within [-2, 2]). Zeros without
-        a key: `apply` runs no initialiser but flax's `nn.Dense`, which traces its kernel's
-        for the shape alone (`jax.eval_shape`)."""
-        if self._key is None:
-            return jnp.zeros((n,))
-        left = self._left.get(distribution, jnp.zeros((0,)))
-        if n > left.shape[0]:  # a new block (what is left of the last one is dropped)
-            u = uniforms(jax.random.fold_in(self._key, self._blocks), (max(n, INIT_BLOCK),))
-            self._blocks += 1
-            if distribution == "truncated_normal":
-                lo = special.ndtr(-2.0)
-                left = jnp.clip(special.ndtri(lo + (1.0 - 2.0 * lo) * u), -2.0, 2.0)
-            elif distribution == "normal":
-                left = special.ndtri(u)
-            else:
-                raise ValueError(f"initial draws: unknown distribution {distribution!r}")
-        self._left[distribution] = left[n:]
-        return left[:n]
-
-    def variance_scaling(self, scale: float, distribution: str, stacked: bool = False):
-        """`jax.nn.initializers.variance_scaling(scale, "fan_in", distribution)` ("normal" or
-        "truncated_normal") drawn from these values; with `stacked`, independent copies along
-        the leading axis (fans from the rest)."""
-
-        def init(key, shape, dtype=jnp.float32):
-            del key  # every value comes from the draws
-            one = shape[1:] if stacked else shape
-            fan_in = int(np.prod(one)) // one[-1]  # receptive field x input channels
-            std = np.sqrt(scale / fan_in)
-            if distribution == "truncated_normal":
-                std /= TRUNCATED_STD
-            z = self._standard(distribution, int(np.prod(shape)))
-            return (z * std).reshape(shape).astype(dtype)
-
-        return init
-
-    def lecun_normal(self, stacked: bool = False):
-        """`jax.nn.initializers.lecun_normal()` (flax's default for weights)."""
-        return self.variance_scaling(1.0, "truncated_normal", stacked)
-
-
-def lstm_gates_reference(gates, c):
-    """ConvLSTM cell update from pre-activation gates [.., 4h] (order i, f, o, g): (h, c)."""
-    i, f, o, g = jnp.split(gates, 4, axis=-1)
-    c = jax.nn.sigmoid(f) * c + jax.nn.sigmoid(i) * jnp.tanh(g)
-    return jax.nn.sigmoid(o) * jnp.tanh(c), c
-
-
-def _materialize(x):
-    """x through a product with the identity (exact for finite x; a NaN spreads to its
-    pixel's channels): XLA:CPU does not fuse elementwise work through a dot, and drops
-    optimization barriers before fusion, so this makes it store x."""
-    return jnp.einsum("...c,cd->...d", x, jnp.eye(x.shape[-1], dtype=x.dtype))
-
-
-def _lstm_forward(gates, c):
-    i, f, o, g = jnp.split(gates, 4, axis=-1)
-    si, sf, so, tg = jax.nn.sigmoid(i), jax.nn.sigmoid(f), jax.nn.sigmoid(o), jnp.tanh(g)
-    c_new = sf * c + si * tg
-    tc = jnp.tanh(c_new)
-    c_new = _materialize(c_new)
-    return (so * tc, c_new), (si, sf, so, tg, c, tc)
-
-
-def _lstm_backward(res, cotangents):
-    si, sf, so, tg, c, tc = res
-    dh, dc_new = cotangents
-    dc = dc_new + dh * so * (1.0 - tc * tc)
-    dgates = jnp.concatenate(
-        [dc * tg * si * (1.0 - si), dc * c * sf * (1.0 - sf), dh * tc * so * (1.0 - so),
-         dc * si * (1.0 - tg * tg)],
-        axis=-1,
-    )
-    # Materialising the cell-state gradient (and the cell state in the forward) keeps XLA from
-    # fusing the whole chain over the unrolled steps into every step (quadratic in T).
-    return dgates, _materialize(dc * sf)
-
-
-@jax.custom_vjp
-def lstm_gates(gates, c):
-    """`lstm_gates_reference` with a hand-written gradient (same values, same gradients).
-    Without a gradient (scoring, sampling) it is the plain formula: nothing to materialise."""
-    return lstm_gates_reference(gates, c)
-
-
-lstm_gates.defvjp(_lstm_forward, _lstm_backward)
-
-
 class SceneGenNet(nn.Module):
     """The network. Parameters are a plain PyTree (Linen), shapes from the config."""
 
     cfg: Config
 
     def setup(self):
-        cfg = self.cfg
-        h = cfg.hidden
-        cm = len(cfg.map_channels)
-        # A key only where the parameters are created (`apply` reads them).
+        # A key only where the parameters are created (`apply` reads them). The parameters
+        # are created in this order, which their initial values depend on (`InitialDraws`).
         draws = InitialDraws(self.make_rng("params") if self.is_initializing() else None)
+        self._setup_convlstm(draws)
+        self._setup_backbone(draws)
+        self._setup_location_heads(draws)
+        self._setup_attribute_heads(draws)
+
+    def _setup_convlstm(self, draws: InitialDraws):
+        """The two ConvLSTM layers' weights: layer 1's input convolution in shares (map,
+        coordinates, canonical order, orientation sectors, actors) and its recurrence."""
+        cfg = self.cfg
+        h, cm = cfg.hidden, len(cfg.map_channels)
         conv_init = draws.lecun_normal()
-        stacked_conv_init = draws.lecun_normal(stacked=True)
-        zeros = nn.initializers.zeros
-        ones = nn.initializers.ones
 
         def lstm_bias(key, shape, dtype=jnp.float32):
             # Forget gate biased open so the state persists at the start of training.
@@ -375,25 +98,27 @@ class SceneGenNet(nn.Module):
         self.lstm1_b = self._param("lstm1_b", lstm_bias, (4 * h,))
         self.lstm2_w = self._param("lstm2_w", conv_init, (5, 5, 2 * h, 4 * h))
         self.lstm2_b = self._param("lstm2_b", lstm_bias, (4 * h,))
-        self.backbone_w = [
-            self._param(f"backbone{i}_w", conv_init, (3, 3, h, h))
-            for i in range(cfg.backbone_layers)
-        ]
-        self.backbone_b = [
-            self._param(f"backbone{i}_b", zeros, (h,)) for i in range(cfg.backbone_layers)
-        ]
-        self.backbone_gs = [
-            self._param(f"backbone{i}_gn_s", ones, (h,)) for i in range(cfg.backbone_layers)
-        ]
-        self.backbone_gb = [
-            self._param(f"backbone{i}_gn_b", zeros, (h,)) for i in range(cfg.backbone_layers)
-        ]
+
+    def _setup_backbone(self, draws: InitialDraws):
+        """The backbone's convolutions and GroupNorms, and the class MLP."""
+        h, layers = self.cfg.hidden, range(self.cfg.backbone_layers)
+        conv_init = draws.lecun_normal()
+        zeros, ones = nn.initializers.zeros, nn.initializers.ones
+        self.backbone_w = [self._param(f"backbone{i}_w", conv_init, (3, 3, h, h)) for i in layers]
+        self.backbone_b = [self._param(f"backbone{i}_b", zeros, (h,)) for i in layers]
+        self.backbone_gs = [self._param(f"backbone{i}_gn_s", ones, (h,)) for i in layers]
+        self.backbone_gb = [self._param(f"backbone{i}_gn_b", zeros, (h,)) for i in layers]
         self.class_mlp = [
             nn.Dense(h, kernel_init=conv_init, name="class_mlp0"),
             nn.Dense(h, kernel_init=conv_init, name="class_mlp1"),
             nn.Dense(NUM_CLASSES + 1, kernel_init=conv_init, name="class_mlp2"),
         ]
-        n = NUM_CLASSES
+
+    def _setup_location_heads(self, draws: InitialDraws):
+        """The per-class location CNNs: two 3 x 3 layers with GroupNorm, then a 1 x 1."""
+        n, h = NUM_CLASSES, self.cfg.hidden
+        stacked_conv_init = draws.lecun_normal(stacked=True)
+        zeros, ones = nn.initializers.zeros, nn.initializers.ones
         self.loc_w = [
             self._param("loc0_w", stacked_conv_init, (n, 3, 3, h, h)),
             self._param("loc1_w", stacked_conv_init, (n, 3, 3, h, h)),
@@ -407,8 +132,13 @@ class SceneGenNet(nn.Module):
         ]
         self.loc_gs = [self._param(f"loc{i}_gn_s", ones, (n, h)) for i in range(2)]
         self.loc_gb = [self._param(f"loc{i}_gn_b", zeros, (n, h)) for i in range(2)]
+
+    def _setup_attribute_heads(self, draws: InitialDraws):
+        """The per-class attribute MLPs and, with the options, their map weights."""
+        cfg = self.cfg
+        n, h, cm = NUM_CLASSES, cfg.hidden, len(cfg.map_channels)
         sizes = attribute_sizes(cfg.num_mixtures)
-        rows = _attribute_bias_rows(cfg.num_mixtures)
+        rows = attribute_bias_rows(cfg.num_mixtures)
         if cfg.separate_attribute_mlps:
             # The paper's MLP_box, MLP_theta and MLP_v: one three-layer MLP per attribute.
             self.attr_mlps = [
@@ -422,21 +152,20 @@ class SceneGenNet(nn.Module):
         if cfg.attribute_map_input:
             # Layer 0's weights for the map channels at the actor's bin, per attribute MLP.
             self.attr_map_w = [
-                self._param(f"{name}0_map_w", stacked_conv_init, (n, cm, h))
+                self._param(f"{name}0_map_w", draws.lecun_normal(stacked=True), (n, cm, h))
                 for name in ATTRIBUTES
             ]
         if cfg.attribute_map_skip:
             # The last layer's weights for the same map channels (zero: the MLP's outputs).
             self.attr_map_skip = [
-                self._param(f"{name}2_map_w", zeros, (n, cm, size))
+                self._param(f"{name}2_map_w", nn.initializers.zeros, (n, cm, size))
                 for name, size in zip(ATTRIBUTES, sizes, strict=True)
             ]
 
     def _param(self, name: str, init, shape: tuple[int, ...]):
         """`self.param(name, init, shape)`. Outside `init` it reads the stored parameter and
-        compares its shape with `shape`: flax's own check traces `init` (1.4 ms a parameter),
-        and every `apply` runs `setup`, which made it 40 % of tracing a train step (~90
-        applies of ~60 parameters)."""
+        compares its shape with `shape`: flax's own check traces `init`, and every `apply`
+        runs `setup`, so that check would dominate the tracing of a train step."""
         if self.is_initializing() or not self.has_variable("params", name):
             return self.param(name, init, shape)  # creates it, or flax's not-found error
         value = self.get_variable("params", name)
@@ -460,7 +189,7 @@ class SceneGenNet(nn.Module):
         bs = [
             self._param(f"{name}0_b", zeros, (n, h)),
             self._param(f"{name}1_b", zeros, (n, h)),
-            self._param(f"{name}2_b", _bias_init(last_bias), (n, out)),
+            self._param(f"{name}2_b", bias_init(last_bias), (n, out)),
         ]
         return ws, bs
 
@@ -585,8 +314,7 @@ class SceneGenNet(nn.Module):
 
         The last layer's weights start at zero, so an untrained model's location distribution
         is uniform and training has no spread of random logits to remove first (with random
-        weights it removed it partly by silencing backbone channels;
-        experiments/results/README.md, session 13).
+        weights it removes it partly by silencing backbone channels).
         """
         cls = jnp.clip(cls, 0, NUM_CLASSES - 1)
 
@@ -620,14 +348,14 @@ class SceneGenNet(nn.Module):
             m = map_feat.astype(feat.dtype)
             x = jnp.concatenate([feat, m], axis=-1)
             outs = [
-                _mlp(x, [jnp.concatenate([ws[0], wm], axis=1), *ws[1:]], bs, cls)
+                per_class_mlp(x, [jnp.concatenate([ws[0], wm], axis=1), *ws[1:]], bs, cls)
                 for (ws, bs), wm in zip(self.attr_mlps, self.attr_map_w, strict=True)
             ]
             if self.cfg.attribute_map_skip:
                 outs = [o + jnp.einsum("bi,bio->bo", m, w[cls])
                         for o, w in zip(outs, self.attr_map_skip, strict=True)]
         else:
-            outs = [_mlp(feat, ws, bs, cls) for ws, bs in self.attr_mlps]
+            outs = [per_class_mlp(feat, ws, bs, cls) for ws, bs in self.attr_mlps]
         if len(outs) == len(ATTRIBUTES):
             box, heading, velocity = outs
         else:
@@ -677,10 +405,10 @@ def init_params(cfg: Config, key):
     """Initial parameters (a plain PyTree) for `cfg`.
 
     Compiled: flax creates the parameters by running one step of the network, which, run
-    eagerly, dispatches its operations one by one (8 s for `tiny` on 2 cores); compiled, XLA
-    drops that step (only the parameters are returned) and keeps their initialisers
-    (`backend.init_compiler_options`), whose random values come from one PRNG call per 2^20
-    values (`InitialDraws`: `tiny`'s program compiles in 0.5 s instead of 2.5 s, slow Xeon)."""
+    eagerly, dispatches its operations one by one; compiled, XLA drops that step (only the
+    parameters are returned) and keeps their initialisers (`backend.init_compiler_options`),
+    whose random values come from one PRNG call per 2^20 values (`InitialDraws`), so that
+    the program compiles few PRNG kernels."""
     net = SceneGenNet(cfg)
     h = cfg.grid_size
     m = jnp.zeros((1, h, h, len(cfg.map_channels)), jnp.float32)

@@ -63,14 +63,35 @@ def rasterize_map(vmap: VectorMap, size: int, m_per_px: float) -> np.ndarray:
     line_buffer = max(LINE_HALF_WIDTH_M, 0.5 * m_per_px)
     channels = {c: np.zeros(n, np.float32) for c in ALL_MAP_CHANNELS}
     tree = shapely.STRtree(points)
-
-    def hit_points(geoms: list) -> np.ndarray:
-        geoms = [g for g in geoms if not g.is_empty and g.intersects(roi)]
-        if not geoms:
-            return np.zeros((2, 0), np.int64)
-        return tree.query(geoms, predicate="intersects")
-
+    hit_points = functools.partial(_hit_points, tree, roi)
     lane_polys = [_valid(shapely.Polygon(lane.polygon)) for lane in vmap.lanes]
+    _draw_lanes(channels, hit_points, vmap, lane_polys, lines, line_buffer)
+    _draw_lane_orientation(channels, tree, roi, lane_polys, lines, centers)
+    if lines:
+        _draw_nearest_lane(channels, centers, size, m_per_px, lines)
+    areas = [_valid(shapely.Polygon(p)) for p in vmap.drivable_areas if len(p) >= 3]
+    channels["drivable_area"][hit_points(areas)[1]] = 1.0
+    walks = [_valid(shapely.Polygon(p)) for p in vmap.crosswalks if len(p) >= 3]
+    channels["crosswalk"][hit_points(walks)[1]] = 1.0
+    if vmap.dataset in DATASETS:
+        channels[LAYER_GROUPS["dataset"][DATASETS.index(vmap.dataset)]][:] = 1.0
+    return np.stack([channels[c] for c in ALL_MAP_CHANNELS], -1).reshape(size, size, -1)
+
+
+def _hit_points(tree: shapely.STRtree, roi, geoms: list) -> np.ndarray:
+    """(geometry, pixel) index pairs [2, P] of the pixel centres in `tree` that the geometries
+    meeting the region `roi` cover."""
+    geoms = [g for g in geoms if not g.is_empty and g.intersects(roi)]
+    if not geoms:
+        return np.zeros((2, 0), np.int64)
+    return tree.query(geoms, predicate="intersects")
+
+
+def _draw_lanes(channels: dict, hit_points, vmap: VectorMap, lane_polys: list, lines: list,
+                line_buffer: float) -> None:
+    """The lane type, intersection, centreline and lane boundary channels (`hit_points`: the
+    pixels a list of geometries covers; `lines`: the lanes' centrelines; lines buffered by
+    `line_buffer` m)."""
     for name, lane_type in (
         ("lane_vehicle", "VEHICLE"),
         ("lane_bike", "BIKE"),
@@ -97,7 +118,11 @@ def rasterize_map(vmap: VectorMap, size: int, m_per_px: float) -> np.ndarray:
     channels["lane_boundary_crossable"][hit_points(crossable)[1]] = 1.0
     channels["lane_boundary_uncrossable"][hit_points(uncrossable)[1]] = 1.0
 
-    # Lane orientation: direction of the nearest centreline segment of the containing lane.
+
+def _draw_lane_orientation(channels: dict, tree: shapely.STRtree, roi, lane_polys: list,
+                           lines: list, centers: np.ndarray) -> None:
+    """Lane orientation: the direction of the nearest centreline segment of the lane that
+    holds the pixel (`lines`: the lanes' centrelines)."""
     keep = [i for i, g in enumerate(lane_polys) if not g.is_empty and g.intersects(roi)]
     if keep:
         pairs = tree.query([lane_polys[i] for i in keep], predicate="intersects")
@@ -106,26 +131,22 @@ def rasterize_map(vmap: VectorMap, size: int, m_per_px: float) -> np.ndarray:
             cos, sin = _segment_direction(lines[keep[j]], centers[idx])
             channels["lane_orientation_cos"][idx] = cos
             channels["lane_orientation_sin"][idx] = sin
-    # Nearest lane: direction of the nearest centreline segment, on and off the lanes (where
-    # the vehicles parked beside a street or in a lot take their heading from its aisles).
-    if centrelines:
-        a = np.concatenate([line[:-1] for line in lines])
-        b = np.concatenate([line[1:] for line in lines])
-        block = max(2, round(NEAREST_BLOCK_M / m_per_px))
-        seg = _nearest_segments(centers, size, a, b, NEAREST_LANE_MAX_M, block)
-        hit = seg >= 0
-        d = b[seg[hit]] - a[seg[hit]]
-        d /= np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-12)[:, None]
-        channels["nearest_lane_cos"][hit] = d[:, 0]
-        channels["nearest_lane_sin"][hit] = d[:, 1]
 
-    areas = [_valid(shapely.Polygon(p)) for p in vmap.drivable_areas if len(p) >= 3]
-    channels["drivable_area"][hit_points(areas)[1]] = 1.0
-    walks = [_valid(shapely.Polygon(p)) for p in vmap.crosswalks if len(p) >= 3]
-    channels["crosswalk"][hit_points(walks)[1]] = 1.0
-    if vmap.dataset in DATASETS:
-        channels[LAYER_GROUPS["dataset"][DATASETS.index(vmap.dataset)]][:] = 1.0
-    return np.stack([channels[c] for c in ALL_MAP_CHANNELS], -1).reshape(size, size, -1)
+
+def _draw_nearest_lane(channels: dict, centers: np.ndarray, size: int, m_per_px: float,
+                       lines: list) -> None:
+    """Nearest lane: the direction of the nearest centreline segment, on and off the lanes
+    (where the vehicles parked beside a street or in a lot take their heading from its
+    aisles), within `NEAREST_LANE_MAX_M`."""
+    a = np.concatenate([line[:-1] for line in lines])
+    b = np.concatenate([line[1:] for line in lines])
+    block = max(2, round(NEAREST_BLOCK_M / m_per_px))
+    seg = _nearest_segments(centers, size, a, b, NEAREST_LANE_MAX_M, block)
+    hit = seg >= 0
+    d = b[seg[hit]] - a[seg[hit]]
+    d /= np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-12)[:, None]
+    channels["nearest_lane_cos"][hit] = d[:, 0]
+    channels["nearest_lane_sin"][hit] = d[:, 1]
 
 
 def _point_segment_distance2(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -146,8 +167,7 @@ def _nearest_segments(centers: np.ndarray, size: int, a: np.ndarray, b: np.ndarr
     from c): a pixel p of the block with the nearest segment at d(p) <= d(c) + r has it
     among the segments within d(c) + 2r of c (triangle inequality), so only those are
     measured against the block's pixels. Shapely's nearest-geometry query over every pixel
-    took 0.39 s of a 320 x 320 raster's 0.57 s on an Argoverse 2 map, 3.4-4.6 s on a
-    womd_mini map; this takes 0.05 and 0.2 s (session 32, Xeon, one core)."""
+    would take most of a large raster's time, many times this search's."""
     rows = np.arange(size) // block
     nb = int(rows[-1]) + 1
     blocks = (rows[:, None] * nb + rows[None, :]).ravel()

@@ -2,7 +2,8 @@
 masks and collision rejection, vmapped across scenes and keys.
 
 Layers, bottom up: `model` (what the sampler needs from a network), `attributes` (box size,
-best-of-M heading and velocity), `rollout` (one scene in one traced function; not
+best-of-M heading and velocity), `placement` (candidate actors and collision rejection),
+`rollout` (one scene in one traced function; not
 re-exported, so that `scenegen_jax.sampling.rollout` stays the module), `batch` (keys per
 scene, batched and concurrent calls), `export` (JSON records of sampled and given actors,
 and Frames for the ScenarioNet exporter).

@@ -24,9 +24,9 @@ One step t (key `fold_in(key, t)`):
      `attribute_map_input`, and the map channels at the bin): heading and velocity are each
      the most likely of M = `proposals` draws (best-of-M; M = 1 is plain sampling), the box
      size is one draw (`sampling.attributes`). The bin is one draw too: the paper's
-     supplementary 3.2 also takes the best of M positions, but with our models that put
-     each actor on the likeliest bins just after the previous one, and the scenes crowded
-     into the first rows of road (experiments/results/README.md, session 20). Pedestrians:
+     supplementary 3.2 also takes the best of M positions, but with our models that puts
+     each actor on the likeliest bins just after the previous one, and crowds the scenes
+     into the first rows of road. Pedestrians:
      nominal square box (`cfg.pedestrian_size_m`), heading = the velocity direction (0 when
      standing); their box and heading are not modelled.
   5. Collision rejection: a vehicle or bicyclist candidate whose box overlaps the ego or an
@@ -34,7 +34,7 @@ One step t (key `fold_in(key, t)`):
      round of candidates is exact rejection sampling (the first acceptance in an i.i.d.
      sequence); when all R fail, their bins are masked out and another round is drawn, at
      most `rounds` rounds; if none is accepted (or no bin is left), the scene stops. So the
-     output never holds overlapping vehicle/bicyclist boxes.
+     output never holds overlapping vehicle/bicyclist boxes (`sampling.placement`).
   6. The actor is written to slot t and drawn into the actor raster for the next step.
 
 Given actors (conditioning, beyond the paper): the first `n_given` steps are teacher forced
@@ -54,8 +54,9 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 import numbers
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -63,25 +64,14 @@ from flax import struct
 from jax import lax
 
 from scenegen_jax.config import Config
-from scenegen_jax.distributions import (
-    masked_log_softmax,
-    offsets_in_bin,
-    ordering_mask,
-    sample_bins,
-    sample_class,
-    uniforms,
-)
-from scenegen_jax.model.network import map_at_bins
+from scenegen_jax.distributions import masked_log_softmax, ordering_mask, sample_class
 from scenegen_jax.raster.actors import draw_actor, empty_actor_raster
-from scenegen_jax.sampling.attributes import sample_attributes
-from scenegen_jax.sampling.geometry import collides
 from scenegen_jax.sampling.model import Model, NetworkModel
+from scenegen_jax.sampling.placement import place_actor
 from scenegen_jax.scene import (
     NUM_CLASSES,
-    PEDESTRIAN,
     STOP,
     Actors,
-    bin_center,
     bin_index,
     canonical_order,
     empty_actors,
@@ -216,82 +206,6 @@ def _where(cond, x, y):
     return jax.tree.map(lambda a, b: jnp.where(cond, a, b), x, y)
 
 
-def _candidates(key, params, model: Model, f, map_raster, cls, log_probs, cfg: Config,
-                proposals, count):
-    """`count` i.i.d. candidate actors of class `cls`: bins from `log_probs` [H*W] (-inf
-    outside the allowed set), positions uniform in the bins, attributes (`sample_attributes`)
-    from the features f [1, H, W, h] and map channels map_raster [1, H, W, Cm] at the bins."""
-    k_bin, k_pos, k_attr = jax.random.split(key, 3)
-    bins = sample_bins(k_bin, log_probs, count, cfg.grid_size)
-    position = bin_center(bins, cfg) + offsets_in_bin(uniforms(k_pos, (count, 2)), cfg)
-    feat = f[0].reshape(-1, f.shape[-1])[bins]  # [R, hidden]
-    classes = jnp.full((count,), cls, jnp.int32)
-    box_raw, heading_raw, velocity_raw = model.attributes(
-        params, feat, classes, map_at_bins(map_raster, bins[None])[0])
-    size, heading, velocity = sample_attributes(
-        jax.random.split(k_attr, count), box_raw, heading_raw, velocity_raw, classes, cfg,
-        proposals)
-    return bins, Actors(
-        cls=classes,
-        position=position.astype(jnp.float32),
-        size=size,
-        heading=heading,
-        velocity=velocity,
-        valid=jnp.ones((count,), bool),
-    )
-
-
-def _place(key, params, model: Model, f, map_raster, cls, log_probs, state: SamplerState,
-           ego: Actors, cfg: Config, proposals: int, candidates: int, rounds: int):
-    """Draws candidates round by round until one is collision-free (see module docstring).
-
-    Returns:
-      (actor, found, rejected): the first accepted candidate (any candidate if none), whether
-      one was accepted, and how many candidates were rejected.
-    """
-    boxed = cls != PEDESTRIAN
-    n_bins = log_probs.shape[0]
-
-    def draw(r, banned):
-        lp = jnp.where(banned, -jnp.inf, log_probs)
-        any_left = jnp.any(jnp.isfinite(lp))
-        lp = jnp.where(any_left, lp, 0.0)  # keeps the categorical finite; result unused then
-        bins, cands = _candidates(jax.random.fold_in(key, r), params, model, f, map_raster,
-                                  cls, lp, cfg, proposals, candidates)
-        hit = jax.vmap(collides, in_axes=(0, None, None))(cands, state.actors, ego)
-        ok = any_left & jnp.logical_not(boxed & hit)
-        return bins, cands, ok, any_left
-
-    def cond(c):
-        r, _, found, any_left, *_ = c
-        return (r < rounds) & jnp.logical_not(found) & any_left
-
-    def body(c):
-        r, banned, _, _, _, rejected = c
-        bins, cands, ok, any_left = draw(r, banned)
-        first = jnp.argmax(ok)  # the first accepted candidate (0 if none)
-        found = jnp.any(ok)
-        # Rejections before the accepted one (all R if none was accepted).
-        n_rejected = jnp.where(found, first, jnp.where(any_left, candidates, 0))
-        tried = jnp.zeros((n_bins,), bool).at[bins].set(True)
-        banned = banned | (tried & jnp.logical_not(found))
-        left = jnp.any(jnp.isfinite(jnp.where(banned, -jnp.inf, log_probs)))
-        return r + 1, banned, found, left, tree_take(cands, first), rejected + n_rejected
-
-    any_valid = jnp.any(jnp.isfinite(log_probs))
-    init = (
-        jnp.int32(0),
-        jnp.zeros((n_bins,), bool),
-        jnp.bool_(False),
-        any_valid,
-        tree_take(empty_actors(1), 0),
-        jnp.int32(0),
-    )
-    init = jax.tree.map(jnp.asarray, init)
-    _, _, found, _, actor, rejected = lax.while_loop(cond, body, init)
-    return actor, found, rejected
-
-
 def pad_given(given: Actors | None, n: int) -> Actors:
     """Given actors padded (or created empty) to n slots; raises if more than n slots."""
     if given is None:
@@ -301,6 +215,120 @@ def pad_given(given: Actors | None, n: int) -> Actors:
         raise ValueError(f"given actors: {slots} slots, more than max_actors = {n}")
     return jax.tree.map(
         lambda x: jnp.pad(jnp.asarray(x), [(0, n - slots)] + [(0, 0)] * (jnp.ndim(x) - 1)), given
+    )
+
+
+
+class _Inputs(NamedTuple):
+    """What every step of one scene's rollout reads: the key, the model's parameters, the map
+    [1, H, W, Cm] and its share of layer 1's gates, the ego, the given actors [N] (canonical,
+    padded) and their count, the class caps [3], the steps whose location distributions are
+    recorded and the location temperature."""
+
+    key: jax.Array
+    params: Any
+    map_raster: jnp.ndarray
+    map_gates: jnp.ndarray
+    ego: Actors
+    given: Actors
+    n_given: jnp.ndarray
+    caps: jnp.ndarray
+    heatmap_steps: jnp.ndarray
+    location_temperature: Any
+
+
+def _step_class(model: Model, inputs: _Inputs, state: SamplerState, f, key, n: int):
+    """Step 2: (class, whether the step is teacher forced, the given actor of the step): the
+    given actor's class while given actors last, else a draw from the class logits of the
+    features f with the classes at their cap masked out."""
+    t = state.count
+    logits = model.class_logits(inputs.params, f)[0]
+    full_class = state.class_counts >= inputs.caps
+    logits = logits.at[:NUM_CLASSES].set(jnp.where(full_class, -jnp.inf, logits[:NUM_CLASSES]))
+    forced = t < inputs.n_given
+    g = tree_take(inputs.given, jnp.minimum(t, n - 1))
+    cls = jnp.where(forced, g.cls, sample_class(key, logits)).astype(jnp.int32)
+    return cls, forced, g
+
+
+def _step_log_probs(model: Model, inputs: _Inputs, state: SamplerState, f, cls, n_bins: int):
+    """Step 3: the location log-probabilities [H*W] of class `cls` (the temperature's logits
+    masked to the bins the canonical order allows, renormalised; -inf elsewhere)."""
+    loc = model.location_logits(inputs.params, f, cls[None])[0]
+    loc = loc / inputs.location_temperature
+    log_probs, _ = masked_log_softmax(loc, ordering_mask(state.prev_bin, n_bins))
+    # Bins allowed by the mask but with -inf logits give NaN in the softmax; drop them.
+    return jnp.where(jnp.isnan(log_probs), -jnp.inf, log_probs)
+
+
+def _step(model: Model, cfg: Config, options: SamplerOptions, proposals: int, inputs: _Inputs,
+          state: SamplerState) -> SamplerState:
+    """One step of the rollout (the module docstring's steps 1 to 6)."""
+    n, n_bins, params = cfg.max_actors, cfg.grid_size * cfg.grid_size, inputs.params
+    t = state.count
+    k_class, k_place = jax.random.split(jax.random.fold_in(inputs.key, t))
+    gates = (inputs.map_gates + state.actor_gates
+             + model.order_gates(params, state.prev_bin[None]))
+    lstm, h = model.recur(params, state.lstm, gates)
+    f = model.features(params, h)
+    cls, forced, g = _step_class(model, inputs, state, f, k_class, n)
+    is_stop = cls == STOP
+    safe_cls = jnp.where(is_stop, 0, cls)
+    log_probs = _step_log_probs(model, inputs, state, f, safe_cls, n_bins)
+    any_valid = jnp.any(jnp.isfinite(log_probs))
+    # Forced and stop steps draw no candidates (no allowed bin: the round loop is skipped).
+    place_lp = jnp.where(forced | is_stop, -jnp.inf, log_probs)
+    sampled, found, rejected = place_actor(k_place, params, model, f, inputs.map_raster,
+                                           safe_cls, place_lp, state.actors, inputs.ego, cfg,
+                                           proposals, options.candidates, options.rounds)
+    actor = _where(forced, g.replace(valid=jnp.bool_(True)), sampled)
+    placed = forced | (jnp.logical_not(is_stop) & any_valid & found)
+    actor = actor.replace(valid=placed)
+
+    actors = jax.tree.map(lambda a, x: a.at[t].set(x), state.actors, actor)
+    count = t + placed.astype(jnp.int32)
+    done = jnp.logical_not(placed) | (count >= n)
+    reason = jnp.select(
+        [placed, is_stop, jnp.logical_not(any_valid)],
+        [StopReason.FULL, StopReason.STOP_TOKEN, StopReason.NO_BIN], StopReason.COLLISION
+    ).astype(jnp.int32)
+    hit = inputs.heatmap_steps == t
+    probs = jnp.where(is_stop, 0.0, jnp.exp(log_probs))
+    raster = draw_actor(state.raster, actor, False, cfg)
+    return SamplerState(
+        lstm=lstm,
+        raster=raster,
+        actor_gates=model.next_actor_gates(params, state.actor_gates, state.raster[None],
+                                           raster[None], actor.position[None]),
+        actors=actors,
+        count=count,
+        prev_bin=jnp.where(placed, bin_index(actor.position, cfg), state.prev_bin),
+        done=done,
+        class_counts=state.class_counts + (jnp.arange(NUM_CLASSES) == cls) * placed,
+        stop_reason=jnp.where(done, reason, state.stop_reason),
+        rejected=state.rejected + rejected,
+        heatmaps=jnp.where(hit[:, None], probs[None], state.heatmaps),
+        heatmap_cls=jnp.where(hit, cls, state.heatmap_cls),
+    )
+
+
+def _initial_state(model: Model, params, raster, n: int, heatmaps: int,
+                   n_bins: int) -> SamplerState:
+    """The loop's first carry: the zero ConvLSTM state, the ego-only raster and its actor
+    gates, no actors, `heatmaps` location distributions of `n_bins` bins to record."""
+    return SamplerState(
+        lstm=model.initial_state(params),
+        raster=raster,
+        actor_gates=model.actor_gates(params, raster[None]),
+        actors=jax.tree.map(jnp.asarray, empty_actors(n)),
+        count=jnp.int32(0),
+        prev_bin=jnp.int32(0),
+        done=jnp.bool_(n == 0),
+        class_counts=jnp.zeros((NUM_CLASSES,), jnp.int32),
+        stop_reason=jnp.int32(StopReason.FULL),
+        rejected=jnp.int32(0),
+        heatmaps=jnp.zeros((heatmaps, n_bins), jnp.float32),
+        heatmap_cls=jnp.full((heatmaps,), -1, jnp.int32),
     )
 
 
@@ -341,7 +369,6 @@ def rollout(
         location_temperature = options.location_temperature
     m = cfg.proposals if options.proposals is None else options.proposals
     n = cfg.max_actors
-    n_bins = cfg.grid_size * cfg.grid_size
     # Stable sort: canonical input is unchanged, anything else is put in canonical order.
     given = canonical_order(pad_given(given, n), cfg)
     n_given = jnp.sum(given.valid).astype(jnp.int32)
@@ -352,83 +379,13 @@ def rollout(
     map_raster = jnp.asarray(map_raster, jnp.float32)[None]
     map_gates = model.map_gates(params, map_raster)
     raster = draw_actor(empty_actor_raster(cfg), ego, True, cfg)
-
-    def step(state: SamplerState) -> SamplerState:
-        t = state.count
-        k_class, k_place = jax.random.split(jax.random.fold_in(key, t))
-        gates = map_gates + state.actor_gates + model.order_gates(params, state.prev_bin[None])
-        lstm, h = model.recur(params, state.lstm, gates)
-        f = model.features(params, h)
-
-        logits = model.class_logits(params, f)[0]
-        full_class = state.class_counts >= caps
-        logits = logits.at[:NUM_CLASSES].set(jnp.where(full_class, -jnp.inf, logits[:NUM_CLASSES]))
-        forced = t < n_given
-        g = tree_take(given, jnp.minimum(t, n - 1))
-        cls = jnp.where(forced, g.cls, sample_class(k_class, logits)).astype(jnp.int32)
-        is_stop = cls == STOP
-        safe_cls = jnp.where(is_stop, 0, cls)
-
-        loc = model.location_logits(params, f, safe_cls[None])[0]
-        loc = loc / location_temperature
-        log_probs, _ = masked_log_softmax(loc, ordering_mask(state.prev_bin, n_bins))
-        # Bins allowed by the mask but with -inf logits give NaN in the softmax; drop them.
-        log_probs = jnp.where(jnp.isnan(log_probs), -jnp.inf, log_probs)
-        any_valid = jnp.any(jnp.isfinite(log_probs))
-        # Forced and stop steps draw no candidates (no allowed bin: the round loop is skipped).
-        place_lp = jnp.where(forced | is_stop, -jnp.inf, log_probs)
-        sampled, found, rejected = _place(k_place, params, model, f, map_raster, safe_cls,
-                                          place_lp, state, ego, cfg, m, options.candidates,
-                                          options.rounds)
-        actor = _where(forced, g.replace(valid=jnp.bool_(True)), sampled)
-        placed = forced | (jnp.logical_not(is_stop) & any_valid & found)
-        actor = actor.replace(valid=placed)
-
-        actors = jax.tree.map(lambda a, x: a.at[t].set(x), state.actors, actor)
-        count = t + placed.astype(jnp.int32)
-        done = jnp.logical_not(placed) | (count >= n)
-        reason = jnp.select(
-            [placed, is_stop, jnp.logical_not(any_valid)],
-            [StopReason.FULL, StopReason.STOP_TOKEN, StopReason.NO_BIN], StopReason.COLLISION
-        ).astype(jnp.int32)
-        hit = steps == t
-        probs = jnp.where(is_stop, 0.0, jnp.exp(log_probs))
-        heatmaps = jnp.where(hit[:, None], probs[None], state.heatmaps)
-        heatmap_cls = jnp.where(hit, cls, state.heatmap_cls)
-        raster = draw_actor(state.raster, actor, False, cfg)
-        return SamplerState(
-            lstm=lstm,
-            raster=raster,
-            actor_gates=model.next_actor_gates(params, state.actor_gates, state.raster[None],
-                                               raster[None], actor.position[None]),
-            actors=actors,
-            count=count,
-            prev_bin=jnp.where(placed, bin_index(actor.position, cfg), state.prev_bin),
-            done=done,
-            class_counts=state.class_counts + (jnp.arange(NUM_CLASSES) == cls) * placed,
-            stop_reason=jnp.where(done, reason, state.stop_reason),
-            rejected=state.rejected + rejected,
-            heatmaps=heatmaps,
-            heatmap_cls=heatmap_cls,
-        )
-
-    init = SamplerState(
-        lstm=model.initial_state(params),
-        raster=raster,
-        actor_gates=model.actor_gates(params, raster[None]),
-        actors=jax.tree.map(jnp.asarray, empty_actors(n)),
-        count=jnp.int32(0),
-        prev_bin=jnp.int32(0),
-        done=jnp.bool_(n == 0),
-        class_counts=jnp.zeros((NUM_CLASSES,), jnp.int32),
-        stop_reason=jnp.int32(StopReason.FULL),
-        rejected=jnp.int32(0),
-        heatmaps=jnp.zeros((steps.shape[0], n_bins), jnp.float32),
-        heatmap_cls=jnp.full((steps.shape[0],), -1, jnp.int32),
-    )
+    inputs = _Inputs(key, params, map_raster, map_gates, ego, given, n_given, caps, steps,
+                     location_temperature)
+    init = _initial_state(model, params, raster, n, steps.shape[0],
+                          cfg.grid_size * cfg.grid_size)
     # Every step in the loop, the first from the zero state with its (zero) recurrent
-    # convolutions: a first step of its own skipped them but compiled the step twice (the
-    # `cpu` sampler compiled in 8.4 s instead of 6.6; bench/README.md, session 26).
+    # convolutions: a first step of its own would skip them but compile the step twice.
+    step = functools.partial(_step, model, cfg, options, m, inputs)
     final = lax.while_loop(lambda s: jnp.logical_not(s.done), step, init)
     return Sample(
         actors=final.actors,

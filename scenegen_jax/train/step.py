@@ -27,18 +27,17 @@ from scenegen_jax.backend import (
 )
 from scenegen_jax.config import LAYER_GROUPS, Config
 from scenegen_jax.likelihood.batch import Batch, crop_batch
-from scenegen_jax.likelihood.terms import mean_nll
-from scenegen_jax.likelihood.unroll import (
+from scenegen_jax.likelihood.grads import (
     chunk_backward,
     chunk_forward,
     chunk_steps,
     grads_epilogue,
     grads_prologue,
     map_gates_and_vjp,
-    num_windows,
-    unroll_terms,
     unroll_terms_and_grads,
 )
+from scenegen_jax.likelihood.terms import mean_nll
+from scenegen_jax.likelihood.unroll import num_windows, unroll_terms
 from scenegen_jax.model.network import MAP_CHANNEL_AXIS, init_params
 
 log = logging.getLogger(__name__)
