@@ -94,26 +94,26 @@ def ours(kind: str, config: str, grid: int, model: str | None) -> dict:
         raise SystemExit(f"{kind} loads a model: --model DIR (written by `export`)")
     else:
         cfg, params, _ = load_pretrained(model)
-    out = {"what": f"first_{kind}", "ours": True, "config": cfg.name, "grid": cfg.grid_size,
-           "max_actors": cfg.max_actors, "imports_s": t_import, "allocator": active()}
+    out = {"what": f"first_{kind}", "ours": True, "config": cfg.name, "grid": cfg.grid.grid_size,
+           "max_actors": cfg.grid.max_actors, "imports_s": t_import, "allocator": active()}
     if kind == "train":
         state = init_state(cfg)
-        batch = jax.device_put(synthetic_batch(cfg, cfg.batch_size, cfg.max_actors))
+        batch = jax.device_put(synthetic_batch(cfg, cfg.train.batch_size, cfg.grid.max_actors))
         t = process_age_s()
         out["init_s"] = t - t_import
         step = train_step_for_run(cfg, state, batch, None, steps=1000)
         out["compile_s"] = process_age_s() - t
         jax.block_until_ready(step(state, batch))
         out["step_s"] = process_age_s() - t - out["compile_s"]
-        out["batch"] = cfg.batch_size
+        out["batch"] = cfg.train.batch_size
     elif kind == "score":
         b = 1 if cfg.name == "paper" else BATCH
         workers = min(default_workers(), b)
-        batch = synthetic_batch(cfg.inference(), b, cfg.max_actors, seed=1)
+        batch = synthetic_batch(cfg, b, cfg.grid.max_actors, seed=1)
         part = b // workers
         parts = [jax.tree.map(lambda x, i=i: x[i * part:(i + 1) * part], batch)
                  for i in range(workers)]
-        score = jax.jit(lambda p, b: score_batch(p, b, cfg.inference())["class"],
+        score = jax.jit(lambda p, b: score_batch(p, b, cfg.model)["class"],
                         compiler_options=scoring_compiler_options())
         jax.block_until_ready(list(concurrent_map(lambda x: score(params, x), parts, workers)))
         out.update(batch=b, workers=workers)
@@ -125,7 +125,8 @@ def ours(kind: str, config: str, grid: int, model: str | None) -> dict:
         host = synthetic_batch(cfg, b, 0, seed=2)
         # Maps cropped one at a time, unrotated, as `scenegen sample` does (`sample_on_cache`).
         crop = jax.jit(crop_map, static_argnums=2)
-        maps = np.stack([np.asarray(crop(jax.numpy.asarray(c), 0.0, cfg)) for c in host.canvas])
+        maps = np.stack([np.asarray(crop(jax.numpy.asarray(c), 0.0, cfg.grid))
+                         for c in host.canvas])
         s = sample_scenes(jax.random.key(0), params, cfg, maps, host.ego)
         jax.block_until_ready(s.actors.valid)
         out["batch"] = b
@@ -159,14 +160,22 @@ def ref(kind: str, grid: int) -> dict:
             net.eval()
             with torch.inference_mode():
                 M.scene_nll(net, x_seq, tgt)
-    return {"what": f"first_{kind}", "ours": False, "grid": grid, "batch": b,
-            "steps": steps, "imports_s": t_import, "first_result_s": process_age_s(),
-            "threads": torch.get_num_threads()}
+    return {
+        "what": f"first_{kind}",
+        "ours": False,
+        "grid": grid,
+        "batch": b,
+        "steps": steps,
+        "imports_s": t_import,
+        "first_result_s": process_age_s(),
+        "threads": torch.get_num_threads(),
+    }
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("side", choices=("ours", "ref", "export"))
     p.add_argument("kind", nargs="?", choices=("train", "score", "sample"))
     p.add_argument("--config", default="tiny", choices=("tiny", "cpu", "paper"))

@@ -49,7 +49,7 @@ def main() -> None:
     name, *pairs = sys.argv[1:] or ["cpu"]
     cfg = get_config(name, rotate_augment=False, **dict(p.split("=", 1) for p in pairs))
     state = init_state(cfg)
-    batch = jax.device_put(synthetic_batch(cfg, cfg.batch_size, cfg.max_actors))
+    batch = jax.device_put(synthetic_batch(cfg, cfg.train.batch_size, cfg.grid.max_actors))
     print(f"peak RSS before compiling {peak_rss_gib():.2f} GiB")
     t = time.perf_counter()
     step = compile_train_step(cfg, state, batch)

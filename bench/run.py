@@ -26,7 +26,7 @@ channels and the reference given `--map-ch 11`, so both do the same convolutions
 (`paper_flops`: the reference README's formula). Our `cpu` preset (hidden 16) has no
 reference twin; it is measured alone (train, score and sampling with the trained model on
 real validation maps, `--workdir`). The `paper` preset's train step recomputes the backbone
-and heads in its backward pass where storing them would not fit in memory (`Config.remat`
+and heads in its backward pass where storing them would not fit in memory (`TrainConfig.remat`
 "auto": on a 24 GiB host they fit at B 1, and the step stores them); a row's `remat` says
 which ran, `remat_forced` a `--remat` given. Summary keys: `train_...` the preset's setting,
 `train_remat_...` and `train_noremat_...` remat forced on or off.
@@ -197,9 +197,9 @@ def run_case(args) -> dict:
     if args.step_loop:
         compiled = args.step_loop == "compiled"
         backend.compiled_step_loop = lambda differentiated=True: compiled
-    c_in = len(cfg.map_channels) + ACTOR_CHANNELS
-    out = {"what": args.kind, "ours": True, "config": cfg.name, "grid": cfg.grid_size,
-           "hidden": cfg.hidden, "batch": args.batch, "map_ch": len(cfg.map_channels),
+    c_in = len(cfg.grid.map_channels) + ACTOR_CHANNELS
+    out = {"what": args.kind, "ours": True, "config": cfg.name, "grid": cfg.grid.grid_size,
+           "hidden": cfg.model.hidden, "batch": args.batch, "map_ch": len(cfg.grid.map_channels),
            "allocator": active()}
     if args.kind != "sample" and backend.compiled_step_loop(args.kind == "train"):
         out.update(step_loop="compiled", step_loop_unroll=backend.STEP_LOOP_UNROLL)
@@ -219,9 +219,9 @@ def run_case(args) -> dict:
             holder["state"], stats = step(holder["state"], batch)
             return stats["loss"]
 
-        out.update(timed(fn, args.runs), steps=args.steps, window=cfg.bptt_window,
-                   remat=cfg.remat, remat_forced=args.remat)
-        flops = paper_flops(cfg.grid_size, args.steps, c_in, cfg.hidden)[1]
+        out.update(timed(fn, args.runs), steps=args.steps, window=cfg.model.bptt_window,
+                   remat=cfg.train.remat, remat_forced=args.remat)
+        flops = paper_flops(cfg.grid.grid_size, args.steps, c_in, cfg.model.hidden)[1]
         out["GFLOP"] = flops * args.batch / 1e9
     elif args.kind == "score":
         # As `score_cache` runs a batch: `workers` concurrent calls on equal parts of it.
@@ -232,20 +232,20 @@ def run_case(args) -> dict:
         part = args.batch // workers
         parts = [jax.tree.map(lambda x, i=i: x[i * part:(i + 1) * part], batch)
                  for i in range(workers)]
-        score = jax.jit(lambda p, b: score_batch(p, b, cfg)["class"],
+        score = jax.jit(lambda p, b: score_batch(p, b, cfg.model)["class"],
                         compiler_options=scoring_compiler_options())
 
         def fn():
             return list(concurrent_map(lambda b: score(state.params, b), parts, workers))
 
-        out.update(timed(fn, args.runs), steps=args.steps, window=cfg.bptt_window,
+        out.update(timed(fn, args.runs), steps=args.steps, window=cfg.model.bptt_window,
                    workers=workers)
         out["scenes_per_s"] = args.batch / out["median_s"]
-        flops = paper_flops(cfg.grid_size, args.steps, c_in, cfg.hidden)[0]
+        flops = paper_flops(cfg.grid.grid_size, args.steps, c_in, cfg.model.hidden)[0]
         out["GFLOP"] = flops * args.batch / 1e9
     else:
         out.update(sample_case(cfg, state.params, args))
-        out["GFLOP"] = step_flops(cfg.grid_size, c_in, cfg.hidden) * args.batch / 1e9
+        out["GFLOP"] = step_flops(cfg.grid.grid_size, c_in, cfg.model.hidden) * args.batch / 1e9
         out["median_s_per_step"] = out["per_scene_step_ms"] * args.batch / 1e3
         out["GFLOPs_per_s"] = out["GFLOP"] / out["median_s_per_step"]
     if args.kind != "sample":
@@ -271,7 +271,7 @@ def device_fields() -> dict:
 
 
 def sample_case(cfg, params, args) -> dict:
-    """Sampling throughput: whole scenes, B at once, M = cfg.proposals."""
+    """Sampling throughput: whole scenes, B at once, M = cfg.sample.proposals."""
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -292,13 +292,13 @@ def sample_case(cfg, params, args) -> dict:
         params = jax.device_put(jax.device_get(state.params))
         cache = load_cache(args.data)
         idx = np.arange(b) * max(len(cache) // b, 1) % len(cache)
-        host = gather_batch(cache, idx, cfg)
+        host = gather_batch(cache, idx, cfg.grid)
     else:
         params = jax.tree.map(lambda x: x, params)
         bias = params["class_mlp2"]["bias"]
         params["class_mlp2"]["bias"] = bias.at[STOP].add(-10.0)
         host = synthetic_batch(cfg, b, 0, seed=2)
-    maps, scenes = crop_batch(host, jnp.zeros(b), cfg)
+    maps, scenes = crop_batch(host, jnp.zeros(b), cfg.grid)
     counter = iter(range(10**6))
     last = {}
 
@@ -313,8 +313,8 @@ def sample_case(cfg, params, args) -> dict:
     count = s.actors.valid.sum(-1).reshape(-1)
     iterations = count + (s.stop_reason.reshape(-1) != StopReason.FULL)
     r.update(
-        proposals=cfg.proposals,
-        max_actors=cfg.max_actors,
+        proposals=cfg.sample.proposals,
+        max_actors=cfg.grid.max_actors,
         actors_per_scene=float(count.mean()),
         loop_iterations=int(iterations.max()),
         scene_steps=int(iterations.sum()),

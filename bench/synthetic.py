@@ -13,10 +13,10 @@ from scenegen_jax.scene import Actors, canonical_order, make_ego
 def synthetic_batch(cfg, b: int, n_actors: int, seed: int = 0) -> Batch:
     """b cached-layout scenes with n_actors random actors each and a random binary map."""
     rng = np.random.default_rng(seed)
-    s = cfg.canvas_size
+    s = cfg.grid.canvas_size
     canvas = (rng.random((b, s, s, len(ALL_MAP_CHANNELS))) < 0.3).astype(np.float16)
-    slots = max(cfg.max_actors, n_actors)
-    half = cfg.region_m / 2 - 1
+    slots = max(cfg.grid.max_actors, n_actors)
+    half = cfg.grid.region_m / 2 - 1
     actors = []
     for _ in range(b):
         a = Actors(
@@ -27,7 +27,7 @@ def synthetic_batch(cfg, b: int, n_actors: int, seed: int = 0) -> Batch:
             velocity=rng.normal(0, 3, (slots, 2)).astype(np.float32),
             valid=np.arange(slots) < n_actors,
         )
-        actors.append(jax.tree.map(np.asarray, canonical_order(a, cfg)))
+        actors.append(jax.tree.map(np.asarray, canonical_order(a, cfg.grid)))
     stacked = jax.tree.map(lambda *x: np.stack(x), *actors)
-    egos = jax.tree.map(lambda *x: np.stack(x), *[make_ego(cfg.ego_size_m)] * b)
+    egos = jax.tree.map(lambda *x: np.stack(x), *[make_ego(cfg.grid.ego_size_m)] * b)
     return Batch(canvas=canvas, actors=stacked, ego=egos)

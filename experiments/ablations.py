@@ -124,7 +124,7 @@ def cmd_sample(args) -> None:
     indices = np.linspace(0, len(cache) - 1, min(args.num, len(cache))).astype(int)
     maps, scenes = real_scenes(cache, indices, cfg)
     samples = sample_scenegen(state.params, cfg, maps, scenes, args.seed)
-    mmd = mmd_table([s.actors for s in scenes], samples, region_m=cfg.region_m)
+    mmd = mmd_table([s.actors for s in scenes], samples, region_m=cfg.grid.region_m)
     on = total = 0
     for i, actors in zip(indices, samples, strict=True):
         a, b = drivable_share(cached_scene(cache, int(i), cfg)[0], actors, cfg)

@@ -30,7 +30,7 @@ def cache_areas(path: str, whole_canvas: bool = False) -> np.ndarray:
     keep = np.asarray(actors.valid) & (np.asarray(actors.cls) == VEHICLE)
     if not whole_canvas:
         cfg = Config.from_json(json.dumps(cache.meta["config"]))
-        keep &= in_region(np.asarray(actors.position), cfg)
+        keep &= in_region(np.asarray(actors.position), cfg.grid)
     size = np.asarray(actors.size)[keep]
     return size[:, 0] * size[:, 1]
 

@@ -69,18 +69,18 @@ def main() -> None:
     cache = load_cache(args.data)
     unroll.actor_log_likelihood = with_tail_term(args.area)
     indices = np.unique(np.linspace(0, len(cache) - 1, min(args.num, len(cache))).astype(int))
-    drivable = cfg.map_channels.index("drivable_area")
-    crop = jax.jit(crop_batch, static_argnames="cfg")  # eagerly, each op would compile alone
+    drivable = cfg.grid.map_channels.index("drivable_area")
+    crop = jax.jit(crop_batch, static_argnames="grid")  # eagerly, each op would compile alone
     real, model, on_road = [], [], []
     for i in indices:  # one scene per call: score_cache scores a contiguous range
         s = nll.score_cache(params, cache, cfg, batch_size=1, progress=False,
                             scenes=range(int(i), int(i) + 1))
         # The scene as the scorer sees it: step t is actor t in canonical order.
-        maps, scene = crop(gather_batch(cache, np.array([i]), cfg), np.zeros(1), cfg=cfg)
+        maps, scene = crop(gather_batch(cache, np.array([i]), cfg.grid), np.zeros(1), grid=cfg.grid)
         n = scene.actors.cls.shape[1]  # slots; the scorer's later steps hold no actor
         vehicle = (nll.actor_steps(s)[0] & (s["step_cls"][0] == VEHICLE))[:n]
         size = np.asarray(scene.actors.size[0])[vehicle]
-        bins = np.asarray(bin_index(scene.actors.position[0], cfg))[vehicle]
+        bins = np.asarray(bin_index(scene.actors.position[0], cfg.grid))[vehicle]
         real.extend(size[:, 0] * size[:, 1] > args.area)
         model.extend(-s["p_large"][0][:n][vehicle])
         on_road.extend(np.asarray(maps[0, ..., drivable]).reshape(-1)[bins] > 0.5)

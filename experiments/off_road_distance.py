@@ -118,10 +118,11 @@ def counted(distances: list[float | None]) -> np.ndarray:
 def in_canonical_order(cache, actors: list) -> list:
     """`actors` (x, y, speed) sorted by ascending bin of the cache's model grid
     (`scene.bin_index`: the canonical order in which the model samples them)."""
-    cfg = Config(grid_size=int(cache.meta["grid_size"]), m_per_px=float(cache.meta["m_per_px"]))
+    cfg = Config().replace(grid_size=int(cache.meta["grid_size"]),
+                           m_per_px=float(cache.meta["m_per_px"]))
     if not actors:
         return []
-    key = np.asarray(bin_index(np.asarray(actors, np.float32)[:, :2], cfg))
+    key = np.asarray(bin_index(np.asarray(actors, np.float32)[:, :2], cfg.grid))
     return [actors[i] for i in np.argsort(key, kind="stable")]
 
 
@@ -136,9 +137,15 @@ def by_order(per_scene: list[list[float | None]], group: int, groups: int = 4) -
     rows = []
     for g, part in enumerate(parts):
         last = "" if g == groups - 1 else g * group + group
-        rows.append({"places": f"{g * group + 1}-{last}", "actors": len(part),
-                     "on_drivable_share": round(float(np.mean(np.array(part) == 0)), 4)
-                     if part else None})
+        rows.append(
+            {
+                "places": f"{g * group + 1}-{last}",
+                "actors": len(part),
+                "on_drivable_share": round(float(np.mean(np.array(part) == 0)), 4)
+                if part
+                else None,
+            }
+        )
     return rows
 
 
@@ -146,19 +153,26 @@ def concentration(per_scene: list[np.ndarray]) -> dict:
     """How the actors off the drivable area spread over the scenes (each scene's `counted`)."""
     counts = np.array([np.sum(d > 0) for d in per_scene], int)
     top = np.sort(counts)[::-1][: max(1, len(counts) // 10)]
-    return {"scenes_without_off_drivable": round(float(np.mean(counts == 0)), 4),
-            "off_drivable_in_top_tenth": round(float(top.sum() / max(counts.sum(), 1)), 4)}
+    return {
+        "scenes_without_off_drivable": round(float(np.mean(counts == 0)), 4),
+        "off_drivable_in_top_tenth": round(float(top.sum() / max(counts.sum(), 1)), 4),
+    }
 
 
 def cascade(per_scene: list[np.ndarray]) -> dict:
     """The share off the drivable area of the counted actors with no actor off it before them
     in their scene's canonical order, and of those with one (each scene's `counted`)."""
-    after = np.concatenate([np.zeros(0, bool)] + [np.cumsum(d > 0) - (d > 0) > 0
-                                                   for d in per_scene])
+    after = np.concatenate(
+        [np.zeros(0, bool)] + [np.cumsum(d > 0) - (d > 0) > 0 for d in per_scene]
+    )
     off = np.concatenate([np.zeros(0, bool)] + [d > 0 for d in per_scene])
-    return {f"off_share_{name}": (round(float(np.mean(off[sel])), 4) if np.any(sel) else None,
-                                  int(np.sum(sel)))
-            for name, sel in (("before_any_off", ~after), ("after_one_off", after))}
+    return {
+        f"off_share_{name}": (
+            round(float(np.mean(off[sel])), 4) if np.any(sel) else None,
+            int(np.sum(sel)),
+        )
+        for name, sel in (("before_any_off", ~after), ("after_one_off", after))
+    }
 
 
 def by_place(cache, scenes, still_mps: float) -> dict:
@@ -173,9 +187,13 @@ def by_place(cache, scenes, still_mps: float) -> dict:
                 count[k] += 1
                 still[k] += speed <= still_mps
     total = max(count.sum(), 1)
-    return {name: {"share": round(float(c / total), 4),
-                   "still_share": round(float(s / c), 3) if c else None}
-            for name, c, s in zip(PLACES, count, still, strict=True)}
+    return {
+        name: {
+            "share": round(float(c / total), 4),
+            "still_share": round(float(s / c), 3) if c else None,
+        }
+        for name, c, s in zip(PLACES, count, still, strict=True)
+    }
 
 
 def by_log(cache, scenes, per_scene: list[np.ndarray], still_mps: float | None) -> dict:
@@ -188,9 +206,13 @@ def by_log(cache, scenes, per_scene: list[np.ndarray], still_mps: float | None) 
     for log, pairs in logs.items():
         part = [d for _, d in pairs]
         every = np.concatenate(part)
-        out[log] = {"scenes": len(part), "actors": len(every),
-                    "on_drivable_share": round(float(np.mean(every == 0)), 4) if len(every)
-                    else None, **concentration(part), **cascade(part)}
+        out[log] = {
+            "scenes": len(part),
+            "actors": len(every),
+            "on_drivable_share": round(float(np.mean(every == 0)), 4) if len(every) else None,
+            **concentration(part),
+            **cascade(part),
+        }
         if still_mps is not None:
             out[log]["by_place"] = by_place(cache, [s for s, _ in pairs], still_mps)
     return out
@@ -206,36 +228,54 @@ def main() -> None:
     parser.add_argument("--cache", required=True)
     parser.add_argument("--samples", help="sampled scenes (JSONL); default: the cache's own")
     parser.add_argument("--class", dest="cls", default=CLASS_NAMES[VEHICLE], choices=CLASS_NAMES)
-    parser.add_argument("--by-order", type=int, metavar="N",
-                        help="also the share by place in canonical order, in groups of N")
-    parser.add_argument("--by-log", action="store_true",
-                        help="also the share by log (the scene id's part before its first /)")
-    parser.add_argument("--by-place", action="store_true",
-                        help="also the share on a lane, on the drivable area off the lanes, off "
-                             f"it within {NEAR_M:g} m and further, with the share standing still")
+    parser.add_argument(
+        "--by-order",
+        type=int,
+        metavar="N",
+        help="also the share by place in canonical order, in groups of N",
+    )
+    parser.add_argument(
+        "--by-log",
+        action="store_true",
+        help="also the share by log (the scene id's part before its first /)",
+    )
+    parser.add_argument(
+        "--by-place",
+        action="store_true",
+        help="also the share on a lane, on the drivable area off the lanes, off "
+        f"it within {NEAR_M:g} m and further, with the share standing still",
+    )
     args = parser.parse_args()
     cache = load_cache(args.cache)
     still_mps = float(cache.meta["config"]["zero_speed"]) if args.by_place else None
-    scenes = list(sampled_scenes(args.samples, args.cls) if args.samples
-                  else real_scenes(cache, args.cls))
+    scenes = list(
+        sampled_scenes(args.samples, args.cls) if args.samples else real_scenes(cache, args.cls)
+    )
     in_order = road_distances(cache, scenes)
     per_scene = [counted(d) for d in in_order]
     every, m = np.concatenate([np.zeros(0), *per_scene]), float(cache.meta["m_per_px"])
     d = every[every > 0]
-    print(json.dumps({"class": args.cls, "actors": len(every), "off_drivable": len(d),
-                      "on_drivable_share": round(1 - len(d) / max(len(every), 1), 4),
-                      "distance_m_percentiles": percentiles(d),
-                      "all_distance_m_percentiles": percentiles(every),
-                      # a neighbouring pixel, diagonals included
-                      "share_within_one_pixel": round(float(np.mean(d <= m * 2**0.5)), 4)
-                      if len(d) else None,
-                      **concentration(per_scene), **cascade(per_scene),
-                      **({"by_place": by_place(cache, scenes, still_mps)}
-                         if args.by_place else {}),
-                      **({"by_log": by_log(cache, scenes, per_scene, still_mps)}
-                         if args.by_log else {}),
-                      **({"by_order": by_order(in_order, args.by_order)}
-                         if args.by_order else {})}))
+    print(
+        json.dumps(
+            {
+                "class": args.cls,
+                "actors": len(every),
+                "off_drivable": len(d),
+                "on_drivable_share": round(1 - len(d) / max(len(every), 1), 4),
+                "distance_m_percentiles": percentiles(d),
+                "all_distance_m_percentiles": percentiles(every),
+                # a neighbouring pixel, diagonals included
+                "share_within_one_pixel": round(float(np.mean(d <= m * 2**0.5)), 4)
+                if len(d)
+                else None,
+                **concentration(per_scene),
+                **cascade(per_scene),
+                **({"by_place": by_place(cache, scenes, still_mps)} if args.by_place else {}),
+                **({"by_log": by_log(cache, scenes, per_scene, still_mps)} if args.by_log else {}),
+                **({"by_order": by_order(in_order, args.by_order)} if args.by_order else {}),
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

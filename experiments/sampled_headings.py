@@ -91,7 +91,7 @@ def main() -> None:
     canvases = [np.asarray(cached_scene(cache, int(i), cfg)[0]) for i in indices]
     report = {"step": step, "data": args.data, "columns": "share, on lane, on drivable"}
     for name, sets in methods.items():
-        hist = scene_histograms(sets, "vehicle", cfg.region_m)["heading"].mean(0)
+        hist = scene_histograms(sets, "vehicle", cfg.grid.region_m)["heading"].mean(0)
         report[name] = {"mean_histogram": [round(float(x), 3) for x in hist],
                         "bins": bin_table(canvases, sets, cfg),
                         "off_lane": off_lane_axes(canvases, sets, cfg)}

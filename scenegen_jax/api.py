@@ -124,7 +124,7 @@ def train(config: Config | str, data: str | Sequence[str], workdir: str, steps: 
 
     cfg = _config_of(config)
     state = train_loop(cfg, data, workdir, steps, **options)
-    return Model(cfg, _uncommitted(state.ema if cfg.ema_decay > 0 else state.params),
+    return Model(cfg, _uncommitted(state.ema if cfg.train.ema_decay > 0 else state.params),
                  int(state.step), {}, workdir)
 
 
@@ -203,7 +203,7 @@ def render(model: Model, scenes: CacheScene | Sequence[CacheScene], path: str) -
                             f"{type(scene).__name__}")
         file = path if len(scenes) == 1 else f"{root}_{n:05d}{ext or '.png'}"
         os.makedirs(os.path.dirname(os.path.abspath(file)), exist_ok=True)
-        render_scene(file, scene.map_raster, model.config.map_channels, scene.actors,
+        render_scene(file, scene.map_raster, model.config.grid.map_channels, scene.actors,
                      scene.ego, model.config, title=f"sample {scene.index}")
         out.append(file)
     return out

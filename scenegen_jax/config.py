@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import types
 from typing import Any
 
 from scenegen_jax.jsonfile import parse_json
@@ -44,18 +45,24 @@ ALL_LAYER_GROUPS: tuple[str, ...] = ("lanes", "drivable", "crosswalks", "nearest
 PAPER_LAYER_GROUPS: tuple[str, ...] = ("lanes", "drivable", "crosswalks")
 
 
-# Fields that only training reads (the scorer and the sampler see `Config.inference()`).
-TRAINING_ONLY = ("name", "hard_negatives", "batch_size", "learning_rate", "warmup_steps",
-                 "decay_steps", "grad_clip", "ema_decay", "rotate_augment", "map_dropout",
-                 "remat", "train_layers", "train_params", "seed")
+# The sub-configs' fields, by sub-config, in `Config` order; every field name is unique
+# across them, so `--set FIELD=VALUE` and `Config.replace(FIELD=...)` name fields flat.
+SECTIONS = ("grid", "model", "train", "sample")
+
+
+class _Part:
+    """What every sub-config has beside its fields."""
+
+    def replace(self, **kw: Any):
+        return dataclasses.replace(self, **kw)
 
 
 @dataclasses.dataclass(frozen=True)
-class Config:
-    """All hyperparameters of data, model, training and sampling.
+class GridConfig(_Part):
+    """The raster grid and the scene representation on it: what data, rasters, the model and
+    the sampler share. Row/column convention: `scene.py`.
 
     Attributes:
-      name: preset name.
       grid_size: H = W of every raster, pixels.
       m_per_px: raster resolution, metres per pixel (region side = grid_size * m_per_px).
       map_layers: layer groups rasterized as map channels (see `LAYER_GROUPS`); the presets
@@ -63,6 +70,47 @@ class Config:
       max_actors: N, actor slots per scene (excluding the ego). A scene with more actors in
         the region keeps the first N in canonical order and has no stop token
         (`Scene.complete`).
+      zero_speed: speeds (m/s) at or below this are the v = 0 point mass.
+      pedestrian_size_m: nominal pedestrian footprint side, m (pedestrians are points).
+      ego_size_m: (width, length) of the ego box, m.
+    """
+
+    grid_size: int = 32
+    m_per_px: float = 2.5
+    map_layers: tuple[str, ...] = PAPER_LAYER_GROUPS
+    max_actors: int = 49
+    zero_speed: float = 0.2
+    pedestrian_size_m: float = 0.6
+    ego_size_m: tuple[float, float] = (1.95, 4.9)
+
+    @property
+    def region_m(self) -> float:
+        """Side of the square region of interest, m."""
+        return self.grid_size * self.m_per_px
+
+    @property
+    def bin_area(self) -> float:
+        """Area of one location bin, m^2."""
+        return self.m_per_px**2
+
+    @property
+    def map_channels(self) -> tuple[str, ...]:
+        """Names of the map raster channels, in order."""
+        return tuple(c for g in ALL_LAYER_GROUPS if g in self.map_layers for c in LAYER_GROUPS[g])
+
+    @property
+    def canvas_size(self) -> int:
+        """Side (px) of the cached map canvas: large enough to crop any rotation of the grid."""
+        return self.grid_size + 2 * math.ceil(self.grid_size * (math.sqrt(2.0) - 1.0) / 2.0 + 1.0)
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelConfig(_Part):
+    """The network and the grid it runs on: everything the scorer and the sampler compile
+    against (with `SampleConfig` and the sampler's options).
+
+    Attributes:
+      grid: the grid (`GridConfig`).
       hidden: ConvLSTM / backbone channels.
       backbone_layers: 3x3 conv layers in the backbone.
       gn_groups: GroupNorm groups. The presets use one group per channel (the paper does not
@@ -71,45 +119,8 @@ class Config:
         with it the backbone's heading information.
       num_mixtures: K, mixture components of box, heading and velocity (velocity has at
         least 2: the v = 0 point mass and one moving component).
-      hard_negatives: bins in the training location normaliser (hard negative mining); at or
-        above grid_size^2 it is the full softmax.
-      bptt_window: W, steps per truncated-backprop window.
-      batch_size: scenes per training step (global, across devices).
-      learning_rate: Adam step size (after the warm-up).
-      warmup_steps: steps of a linear learning-rate ramp from 0 to `learning_rate` (beyond the
-        paper; 0 disables). Adam's first steps move every weight by about the full step size
-        whatever its gradient; the ramp keeps them from silencing backbone channels.
-      decay_steps: after the warm-up, steps of a cosine decay of the learning rate from
-        `learning_rate` to 0, then 0 (beyond the paper; 0 keeps it constant). The shipped
-        model's last phase decays the noise of constant-rate Adam at batch 4
-        (scenegen_jax/pretrained/cpu-av2-womd/MODEL_CARD.md).
-      grad_clip: global-norm clip (0 disables).
-      ema_decay: d of an exponential moving average of the parameters, updated after every
-        step as d * average + (1 - d) * parameters from the parameters the run starts with
-        (beyond the paper; 0, the default, keeps none). With it, `score`, `sample`,
-        `evaluate`, `export-model` and `--init-from` read the average instead of the last
-        step's parameters (`workdir.load_params`); about 1 / (1 - d) steps are averaged.
-      proposals: M, best-of-M draws of the heading and velocity when sampling (the box size
-        and the position are one draw each; `sampling.rollout`).
-      zero_speed: speeds (m/s) at or below this are the v = 0 point mass.
-      pedestrian_size_m: nominal pedestrian footprint side, m (pedestrians are points).
-      ego_size_m: (width, length) of the ego box, m.
-      rotate_augment: random rotation about the ego during training.
-      map_dropout: probability that a training scene's map channels are all zeroed (beyond the
-        paper): the model must then place actors from the actors alone, as a model without a
-        map does, instead of only memorising where vehicles stand on the training maps.
-      train_layers: map layer groups (of `map_layers`) whose weights alone train (beyond the
-        paper; fine-tuning): every other parameter, and the weights of every other map
-        channel, keep the values the run starts from. For a model extended with a layer group
-        by `--init-from` (its new weights start at zero), e.g. the `dataset` layers. Empty,
-        with `train_params` empty too (the default): every parameter trains.
-      train_params: parameters (top-level names of the parameter tree, e.g. `lstm1_order`)
-        that train in full beside `train_layers` (beyond the paper; fine-tuning); every
-        other parameter keeps its starting values.
-      remat: recompute the backbone and heads in the train step's backward pass instead of
-        storing their activations (same values and gradients; less memory, more compute):
-        true, false, or "auto" (the `paper` preset's): false where the step without it
-        fits in the memory free when training starts, else true (`train.step.resolve_remat`).
+      bptt_window: W, steps per window of the unroll: the ConvLSTM state is carried across
+        windows; training backpropagates within a window (truncated backprop through time).
       coord_channels: two more input channels, each pixel's row and column in [-1, 1]
         (beyond the paper's input; off in the presets). The network is otherwise fully
         convolutional and cannot tell the top of the grid from the middle, where the first
@@ -146,35 +157,14 @@ class Config:
         whose config lacks this field, is one MLP whose last layer outputs all three: the
         heading then shares its hidden units with the box and velocity, and mostly fails to
         learn.
-      seed: base random seed.
     """
 
-    name: str = "tiny"
-    grid_size: int = 32
-    m_per_px: float = 2.5
-    map_layers: tuple[str, ...] = PAPER_LAYER_GROUPS
-    max_actors: int = 49
+    grid: GridConfig = GridConfig()
     hidden: int = 16
     backbone_layers: int = 5
     gn_groups: int = 16
     num_mixtures: int = 3
-    hard_negatives: int = 512
     bptt_window: int = 25
-    batch_size: int = 4
-    learning_rate: float = 1e-3
-    warmup_steps: int = 0
-    decay_steps: int = 0
-    grad_clip: float = 1.0
-    ema_decay: float = 0.0
-    proposals: int = 10
-    zero_speed: float = 0.2
-    pedestrian_size_m: float = 0.6
-    ego_size_m: tuple[float, float] = (1.95, 4.9)
-    rotate_augment: bool = True
-    map_dropout: float = 0.0
-    remat: bool | str = False  # true, false or "auto"
-    train_layers: tuple[str, ...] = ()
-    train_params: tuple[str, ...] = ()
     coord_channels: bool = False
     orientation_bins: int = 0
     order_channel: bool = False
@@ -182,86 +172,232 @@ class Config:
     attribute_map_skip: bool = False
     heading_lane_frame: bool = False
     separate_attribute_mlps: bool = False
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig(_Part):
+    """What only training reads.
+
+    Attributes:
+      hard_negatives: bins in the training location normaliser (hard negative mining); at or
+        above grid_size^2 it is the full softmax.
+      batch_size: scenes per training step (global, across devices).
+      learning_rate: Adam step size (after the warm-up).
+      warmup_steps: steps of a linear learning-rate ramp from 0 to `learning_rate` (beyond the
+        paper; 0 disables). Adam's first steps move every weight by about the full step size
+        whatever its gradient; the ramp keeps them from silencing backbone channels.
+      decay_steps: after the warm-up, steps of a cosine decay of the learning rate from
+        `learning_rate` to 0, then 0 (beyond the paper; 0 keeps it constant): it decays the
+        noise of constant-rate Adam at small batches.
+      grad_clip: global-norm clip (0 disables).
+      ema_decay: d of an exponential moving average of the parameters, updated after every
+        step as d * average + (1 - d) * parameters from the parameters the run starts with
+        (beyond the paper; 0, the default, keeps none). With it, `score`, `sample`,
+        `evaluate`, `export-model` and `--init-from` read the average instead of the last
+        step's parameters (`workdir.load_params`); about 1 / (1 - d) steps are averaged.
+      rotate_augment: random rotation about the ego during training.
+      map_dropout: probability that a training scene's map channels are all zeroed (beyond the
+        paper): the model must then place actors from the actors alone, as a model without a
+        map does, instead of only memorising where vehicles stand on the training maps.
+      remat: recompute the backbone and heads in the train step's backward pass instead of
+        storing their activations (same values and gradients; less memory, more compute):
+        true, false, or "auto" (the `paper` preset's): false where the step without it
+        fits in the memory free when training starts, else true (`train.step.resolve_remat`).
+      train_layers: map layer groups (of `map_layers`) whose weights alone train (beyond the
+        paper; fine-tuning): every other parameter, and the weights of every other map
+        channel, keep the values the run starts from. For a model extended with a layer group
+        by `--init-from` (its new weights start at zero), e.g. the `dataset` layers. Empty,
+        with `train_params` empty too (the default): every parameter trains.
+      train_params: parameters (top-level names of the parameter tree, e.g. `lstm1_order`)
+        that train in full beside `train_layers` (beyond the paper; fine-tuning); every
+        other parameter keeps its starting values.
+      seed: base random seed.
+    """
+
+    hard_negatives: int = 512
+    batch_size: int = 4
+    learning_rate: float = 1e-3
+    warmup_steps: int = 0
+    decay_steps: int = 0
+    grad_clip: float = 1.0
+    ema_decay: float = 0.0
+    rotate_augment: bool = True
+    map_dropout: float = 0.0
+    remat: bool | str = False  # true, false or "auto"
+    train_layers: tuple[str, ...] = ()
+    train_params: tuple[str, ...] = ()
     seed: int = 0
 
+
+@dataclasses.dataclass(frozen=True)
+class SampleConfig(_Part):
+    """The sampler's defaults that a model's config carries.
+
+    Attributes:
+      proposals: M, best-of-M draws of the heading and velocity when sampling (the box size
+        and the position are one draw each; `sampling.rollout`).
+    """
+
+    proposals: int = 10
+
+
+def _section_fields() -> dict[str, str]:
+    """{flat field name: its section} over every sub-config (the grid's are the model's)."""
+    out = {f.name: "grid" for f in dataclasses.fields(GridConfig)}
+    for section, cls in (("model", ModelConfig), ("train", TrainConfig),
+                         ("sample", SampleConfig)):
+        out.update({f.name: section for f in dataclasses.fields(cls) if f.name != "grid"})
+    return out
+
+
+FIELD_SECTIONS: dict[str, str] = _section_fields()
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """Every hyperparameter, by concern: the model (with its grid), training and sampling.
+    Functions take the part they read: the grid (`cfg.model.grid`) for data and rasters,
+    the model for the network, the scorer and the sampler, the whole config for training.
+
+    Attributes:
+      name: preset name.
+      model: `ModelConfig` (its `grid`: `GridConfig`).
+      train: `TrainConfig`.
+      sample: `SampleConfig`.
+    """
+
+    name: str = "tiny"
+    model: ModelConfig = ModelConfig()
+    train: TrainConfig = TrainConfig()
+    sample: SampleConfig = SampleConfig()
+
     def __post_init__(self):
-        problems = config_problems(self)
+        for section, cls in (("model", ModelConfig), ("train", TrainConfig),
+                             ("sample", SampleConfig)):
+            if not isinstance(getattr(self, section), cls):
+                raise ValueError(f"invalid config: {section} must be a {cls.__name__}, got "
+                                 f"{type(getattr(self, section)).__name__}")
+        if not isinstance(self.model.grid, GridConfig):
+            raise ValueError("invalid config: model.grid must be a GridConfig")
+        problems = config_problems(types.SimpleNamespace(**self.flat()))
         if problems:
             raise ValueError("invalid config: " + "; ".join(problems))
 
     @property
-    def region_m(self) -> float:
-        """Side of the square region of interest, m."""
-        return self.grid_size * self.m_per_px
+    def grid(self) -> GridConfig:
+        """The model's grid (`model.grid`)."""
+        return self.model.grid
 
-    @property
-    def bin_area(self) -> float:
-        """Area of one location bin, m^2."""
-        return self.m_per_px**2
-
-    @property
-    def map_channels(self) -> tuple[str, ...]:
-        """Names of the map raster channels, in order."""
-        return tuple(c for g in ALL_LAYER_GROUPS if g in self.map_layers for c in LAYER_GROUPS[g])
-
-    @property
-    def canvas_size(self) -> int:
-        """Side (px) of the cached map canvas: large enough to crop any rotation of the grid."""
-        return self.grid_size + 2 * math.ceil(self.grid_size * (math.sqrt(2.0) - 1.0) / 2.0 + 1.0)
+    def flat(self) -> dict[str, Any]:
+        """{field: value} over every sub-config, with `name`."""
+        out: dict[str, Any] = {"name": self.name}
+        for part in (self.model.grid, self.model, self.train, self.sample):
+            out.update({f.name: getattr(part, f.name) for f in dataclasses.fields(part)
+                        if f.name != "grid"})
+        return out
 
     def replace(self, **kw: Any) -> Config:
-        return dataclasses.replace(self, **kw)
-
-    def inference(self) -> Config:
-        """This config with the fields only training reads (`TRAINING_ONLY`) at their defaults:
-        the static config of the scorer and the sampler, so that a change of learning rate,
-        seed or batch size does not compile them again."""
-        defaults = {f.name: f.default for f in dataclasses.fields(self)}
-        return self.replace(**{name: defaults[name] for name in TRAINING_ONLY})
+        """This config with fields replaced, each named flat (`grid_size=64`,
+        `learning_rate=3e-4`) or a whole sub-config (`model=...`)."""
+        return from_flat({**self.flat(), **_flatten_sections(kw)})
 
     def to_json(self) -> str:
         return json.dumps(dataclasses.asdict(self), indent=2)
 
     @classmethod
     def from_json(cls, text: str | bytes, source: str = "config") -> Config:
-        """The config of `to_json` text; errors name `source` (a file) and the field."""
+        """The config of `to_json` text, or of the one-level form written before the
+        sub-configs (every field at the top level), which reads as the same config; errors
+        name `source` (a file) and the field."""
         d = parse_json(text, source)
         if not isinstance(d, dict):
             raise ValueError(f"{source}: expected a JSON object of config fields")
-        fields = {f.name: f for f in dataclasses.fields(cls)}
-        unknown = sorted(set(d) - set(fields))
+        flat = _flatten_json(d, source)
+        unknown = sorted(set(flat) - set(FIELD_SECTIONS) - {"name"})
         if unknown:
             raise ValueError(f"{source}: unknown config field(s) {unknown}")
-        default = cls()
-        for key, value in d.items():
-            want = type(getattr(default, key))
-            if key == "remat" and value == "auto":
-                continue
-            if want is tuple:
-                if not isinstance(value, list):
-                    raise ValueError(f"{source}: field {key}: expected a list, got {value!r}")
-                d[key] = tuple(value)
-            elif want is float and isinstance(value, int) and not isinstance(value, bool):
-                try:
-                    d[key] = float(value)
-                except OverflowError as e:
-                    raise ValueError(f"{source}: field {key}: integer out of float range") from e
-            elif type(value) is not want:
-                raise ValueError(
-                    f"{source}: field {key}: expected {want.__name__}, got {value!r}"
-                )
+        default = cls().flat()
+        for key, value in flat.items():
+            flat[key] = _typed(key, value, type(default[key]), source)
         try:
-            return cls(**d)
+            return from_flat(flat)
         except ValueError as e:
             raise ValueError(f"{source}: {e}") from e
 
     def differences(self, other: Config) -> list[str]:
         """'field: self value != other value' for every field that differs."""
-        return [
-            f"{f.name}: {getattr(self, f.name)!r} != {getattr(other, f.name)!r}"
-            for f in dataclasses.fields(self)
-            if getattr(self, f.name) != getattr(other, f.name)
-        ]
+        mine, theirs = self.flat(), other.flat()
+        return [f"{k}: {mine[k]!r} != {theirs[k]!r}" for k in mine if mine[k] != theirs[k]]
+
+
+def from_flat(flat: dict[str, Any]) -> Config:
+    """The config of {field: value} over every sub-config (missing fields: defaults)."""
+    unknown = sorted(set(flat) - set(FIELD_SECTIONS) - {"name"})
+    if unknown:
+        raise ValueError(f"unknown config field(s) {unknown}; fields: "
+                         f"{sorted(FIELD_SECTIONS)}")
+    parts = {s: {k: v for k, v in flat.items() if FIELD_SECTIONS.get(k) == s}
+             for s in SECTIONS}
+    kw = {"model": ModelConfig(grid=GridConfig(**parts["grid"]), **parts["model"]),
+          "train": TrainConfig(**parts["train"]), "sample": SampleConfig(**parts["sample"])}
+    if "name" in flat:
+        kw["name"] = flat["name"]
+    return Config(**kw)
+
+
+def _flatten_sections(kw: dict[str, Any]) -> dict[str, Any]:
+    """`replace` keywords with whole sub-configs spread into their fields."""
+    out = {}
+    for key, value in kw.items():
+        if dataclasses.is_dataclass(value) and key in ("model", "grid", "train", "sample"):
+            fields = {f.name: getattr(value, f.name) for f in dataclasses.fields(value)}
+            if key == "model":
+                fields.update(_flatten_sections({"grid": fields.pop("grid")}))
+            out.update(fields)
+        else:
+            out[key] = value
+    return out
+
+
+def _flatten_json(d: dict, source: str) -> dict[str, Any]:
+    """{field: value} of a config JSON object, nested (`to_json`) or one level."""
+    out = {k: v for k, v in d.items() if k not in ("model", "train", "sample")}
+    for section in ("model", "train", "sample"):
+        if section not in d:
+            continue
+        part = d[section]
+        if not isinstance(part, dict):
+            raise ValueError(f"{source}: field {section}: expected an object, got {part!r}")
+        part = dict(part)
+        if section == "model":
+            grid = part.pop("grid", {})
+            if not isinstance(grid, dict):
+                raise ValueError(f"{source}: field model.grid: expected an object, got "
+                                 f"{grid!r}")
+            part.update(grid)
+        clash = sorted(set(part) & set(out))
+        if clash:
+            raise ValueError(f"{source}: field(s) {clash} given twice")
+        out.update(part)
+    return out
+
+
+def _typed(key: str, value: Any, want: type, source: str) -> Any:
+    """A JSON value as the field's type; errors name `source` and the field."""
+    if key == "remat" and value == "auto":
+        return value
+    if want is tuple:
+        if not isinstance(value, list):
+            raise ValueError(f"{source}: field {key}: expected a list, got {value!r}")
+        return tuple(value)
+    if want is float and isinstance(value, int) and not isinstance(value, bool):
+        try:
+            return float(value)
+        except OverflowError as e:
+            raise ValueError(f"{source}: field {key}: integer out of float range") from e
+    if type(value) is not want:
+        raise ValueError(f"{source}: field {key}: expected {want.__name__}, got {value!r}")
+    return value
 
 
 def config_problems(cfg: Config) -> list[str]:
@@ -335,7 +471,7 @@ def config_problems(cfg: Config) -> list[str]:
 
 PRESETS: dict[str, Config] = {
     # As published: 80 m x 80 m at 0.25 m/px, K = 10, 10,000 hard negatives, batch 16.
-    "paper": Config(
+    "paper": from_flat(dict(
         name="paper",
         grid_size=320,
         m_per_px=0.25,
@@ -351,9 +487,9 @@ PRESETS: dict[str, Config] = {
         # Recomputes only where the step would not fit: its batch of 16 on one accelerator.
         # On CPU, where a scene's step fits, recomputing would only cost time.
         remat="auto",
-    ),
+    )),
     # Trains on 2 CPU cores: 1.25 m/px over the same 80 m region, half the paper's width.
-    "cpu": Config(
+    "cpu": from_flat(dict(
         name="cpu",
         grid_size=64,
         m_per_px=1.25,
@@ -368,9 +504,9 @@ PRESETS: dict[str, Config] = {
         batch_size=4,
         learning_rate=1e-3,
         separate_attribute_mlps=True,
-    ),
+    )),
     # Tests and the demo: minutes on 2 cores. The full softmax over its 1,024 bins, as `cpu`.
-    "tiny": Config(hard_negatives=32 * 32, separate_attribute_mlps=True),
+    "tiny": from_flat(dict(hard_negatives=32 * 32, separate_attribute_mlps=True)),
 }
 
 
@@ -383,12 +519,12 @@ def get_config(name: str, /, **overrides: Any) -> Config:
 
 def apply_overrides(base: Config, /, **overrides: Any) -> Config:
     """`base` with fields replaced; string values are parsed to the field's type."""
-    fields = {f.name for f in dataclasses.fields(Config)}
+    current = base.flat()
     parsed: dict[str, Any] = {}
     for key, value in overrides.items():
-        if key not in fields:
-            raise ValueError(f"unknown config field {key!r}; fields: {sorted(fields)}")
-        parsed[key] = _parse(getattr(base, key), value, key)
+        if key not in current:
+            raise ValueError(f"unknown config field {key!r}; fields: {sorted(current)}")
+        parsed[key] = _parse(current[key], value, key)
     return base.replace(**parsed)
 
 

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from scenegen_jax.config import Config
+from scenegen_jax.config import GridConfig
 
 VEHICLE, PEDESTRIAN, BICYCLIST, STOP = 0, 1, 2, 3
 NUM_CLASSES = 3
@@ -83,7 +83,7 @@ class Scene:
     ego: Actors
     complete: jnp.ndarray | bool = True
 
-    def validate(self, cfg: Config, where: str = "scene") -> None:
+    def validate(self, grid: GridConfig, where: str = "scene") -> None:
         """Checks values, region and canonical order; raises ValueError naming the field."""
         self.actors.validate(f"{where}.actors")
         self.ego.validate(f"{where}.ego")
@@ -92,9 +92,9 @@ class Scene:
         if not np.all(valid[:n]):
             raise ValueError(f"{where}.actors.valid: valid slots must come first")
         pos = np.asarray(self.actors.position)[:n]
-        if not np.all(np.asarray(in_region(pos, cfg))):
-            raise ValueError(f"{where}.actors.position: actor outside the {cfg.region_m} m region")
-        bins = np.asarray(bin_index(pos, cfg))
+        if not np.all(np.asarray(in_region(pos, grid))):
+            raise ValueError(f"{where}.actors.position: actor outside the {grid.region_m} m region")
+        bins = np.asarray(bin_index(pos, grid))
         if np.any(np.diff(bins) < 0):
             raise ValueError(f"{where}.actors: not in canonical (row-major bin) order")
 
@@ -126,54 +126,54 @@ def make_ego(size, velocity=(0.0, 0.0), heading: float = 0.0) -> Actors:
     )
 
 
-def pixel_of(position, cfg: Config):
+def pixel_of(position, grid: GridConfig):
     """(row, col) int32 of positions [..., 2] in m; may fall outside the grid."""
-    half = cfg.region_m / 2
-    col = jnp.floor((position[..., 0] + half) / cfg.m_per_px)
-    row = jnp.floor((half - position[..., 1]) / cfg.m_per_px)
+    half = grid.region_m / 2
+    col = jnp.floor((position[..., 0] + half) / grid.m_per_px)
+    row = jnp.floor((half - position[..., 1]) / grid.m_per_px)
     return row.astype(jnp.int32), col.astype(jnp.int32)
 
 
-def pixel_centers(cfg: Config, size: int | None = None) -> np.ndarray:
-    """[S, S, 2] (x, y) centres of an S x S grid at cfg.m_per_px around the ego (S = H default)."""
-    s = cfg.grid_size if size is None else size
-    half = s * cfg.m_per_px / 2
-    coords = (np.arange(s) + 0.5) * cfg.m_per_px - half
+def pixel_centers(grid: GridConfig, size: int | None = None) -> np.ndarray:
+    """[S, S, 2] (x, y) centres of an S x S grid at grid.m_per_px around the ego (S = H default)."""
+    s = grid.grid_size if size is None else size
+    half = s * grid.m_per_px / 2
+    coords = (np.arange(s) + 0.5) * grid.m_per_px - half
     xx, yy = np.meshgrid(coords, -coords)
     return np.stack([xx, yy], axis=-1).astype(np.float32)
 
 
-def in_region(position, cfg: Config):
+def in_region(position, grid: GridConfig):
     """bool [...]: position [..., 2] lies inside the square region of interest (float32, as
     on the device; a NumPy input gives a NumPy result without a compiled call)."""
-    half = cfg.region_m / 2
+    half = grid.region_m / 2
     if isinstance(position, np.ndarray):
         position = position.astype(np.float32, copy=False)
         return np.all((position >= -half) & (position < half), axis=-1)
     return jnp.all((position >= -half) & (position < half), axis=-1)
 
 
-def bin_index(position, cfg: Config):
+def bin_index(position, grid: GridConfig):
     """Row-major location bin of positions [..., 2]; clipped into the grid."""
-    row, col = pixel_of(position, cfg)
-    h = cfg.grid_size
+    row, col = pixel_of(position, grid)
+    h = grid.grid_size
     return jnp.clip(row, 0, h - 1) * h + jnp.clip(col, 0, h - 1)
 
 
-def bin_center(index, cfg: Config):
+def bin_center(index, grid: GridConfig):
     """(x, y) m of the centre of row-major bin `index`."""
-    h = cfg.grid_size
+    h = grid.grid_size
     row, col = index // h, index % h
-    half = cfg.region_m / 2
-    x = (col + 0.5) * cfg.m_per_px - half
-    y = half - (row + 0.5) * cfg.m_per_px
+    half = grid.region_m / 2
+    x = (col + 0.5) * grid.m_per_px - half
+    y = half - (row + 0.5) * grid.m_per_px
     return jnp.stack([x, y], axis=-1)
 
 
-def canonical_order(actors: Actors, cfg: Config) -> Actors:
+def canonical_order(actors: Actors, grid: GridConfig) -> Actors:
     """Sorts actors by ascending row-major bin, invalid slots last (stable; jit-friendly)."""
-    n_bins = cfg.grid_size * cfg.grid_size
-    key = jnp.where(actors.valid, bin_index(actors.position, cfg), n_bins)
+    n_bins = grid.grid_size * grid.grid_size
+    key = jnp.where(actors.valid, bin_index(actors.position, grid), n_bins)
     order = jnp.argsort(key, stable=True)
     return tree_take(actors, order)
 

@@ -55,8 +55,8 @@ def load_params(workdir: str, step: int | None = None):
 
 def _params_entry(cfg: Config) -> str:
     """The train state's entry that holds the parameters to use."""
-    return "ema" if cfg.ema_decay > 0 else "params"
+    return "ema" if cfg.train.ema_decay > 0 else "params"
 
 
 def _params_template(cfg: Config) -> dict:
-    return {_params_entry(cfg): jax.eval_shape(lambda: init_params(cfg, jax.random.key(0)))}
+    return {_params_entry(cfg): jax.eval_shape(lambda: init_params(cfg.model, jax.random.key(0)))}

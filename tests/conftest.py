@@ -139,7 +139,7 @@ def overfit_run(request, tmp_path_factory, tiny_train_cache):
         fcntl.flock(lock, fcntl.LOCK_EX)
         if not (path / "losses.json").exists():
             batch = jax.device_put(
-                gather_batch(tiny_train_cache, two_small_scenes(tiny_train_cache), CFG))
+                gather_batch(tiny_train_cache, two_small_scenes(tiny_train_cache), CFG.grid))
             state, step, losses = init_state(CFG), make_train_step(CFG), []
             for _ in range(100):
                 state, stats = step(state, batch)

@@ -16,9 +16,9 @@ from scenegen_jax.scene import PEDESTRIAN, VEHICLE, Actors, bin_index
 from scenegen_jax.viz.render import box_corners
 
 TINY = get_config("tiny")
-H = TINY.grid_size
+H = TINY.grid.grid_size
 N_BINS = H * H
-K = TINY.num_mixtures
+K = TINY.model.num_mixtures
 NEG = -30.0  # logit of an (effectively) impossible outcome
 
 
@@ -48,12 +48,12 @@ def broadcast(tree, b: int):
 
 def ego_of(cfg) -> Actors:
     return Actors(cls=np.int32(VEHICLE), position=np.zeros(2, np.float32),
-                  size=np.asarray(cfg.ego_size_m, np.float32), heading=np.float32(0.0),
+                  size=np.asarray(cfg.grid.ego_size_m, np.float32), heading=np.float32(0.0),
                   velocity=np.zeros(2, np.float32), valid=np.bool_(True))
 
 
 def bins_of(actors: Actors, cfg):
-    return np.asarray(bin_index(jnp.asarray(actors.position), cfg))
+    return np.asarray(bin_index(jnp.asarray(actors.position), cfg.grid))
 
 
 def write_val_cache(out: str, data_root: str):

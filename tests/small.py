@@ -30,7 +30,7 @@ def two_small_scenes(cache) -> np.ndarray:
     """Indices of the two scenes of `cache` with the fewest actors in the region (13 and 14 in
     the tiny fixture: CFG keeps the first 6 in canonical order, a full scene of 7 steps)."""
     pos = cache.actors.position
-    inside = cache.actors.valid & (np.abs(pos) < CFG.region_m / 2).all(-1)
+    inside = cache.actors.valid & (np.abs(pos) < CFG.grid.region_m / 2).all(-1)
     return np.sort(np.argsort(inside.sum(1), kind="stable")[:2])
 
 
@@ -43,7 +43,7 @@ def random_params(cfg, key):
     from scenegen_jax.model.network import init_params
 
     init_key, loc_key = jax.random.split(key)
-    params = dict(init_params(cfg, init_key))
+    params = dict(init_params(cfg.model, init_key))
     w = params["loc2_w"]
     params["loc2_w"] = jax.random.normal(loc_key, w.shape, w.dtype) / np.sqrt(w.shape[-2])
     return params
@@ -53,7 +53,7 @@ def train_args(cache, workdir, steps, *extra) -> list[str]:
     """`scenegen train` of CFG's shapes on `cache` (saving every 2 steps) as the command's
     arguments, with `extra` options: for `cli.main` in this process, where the programs that
     other tests compiled for CFG are already traced, or for `train_cmd`."""
-    overrides = [f"{k}={getattr(CFG, k)}"
+    overrides = [f"{k}={CFG.flat()[k]}"
                  for k in ("max_actors", "bptt_window", "batch_size", "hidden", "gn_groups")]
     return ["train", "--config", "tiny", "--data", cache, "--workdir", workdir,
             "--steps", str(steps), "--save-every", "2", "--log-every", "2", *extra,

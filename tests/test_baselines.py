@@ -26,7 +26,7 @@ def frames(all_frames):
 
 @pytest.fixture(scope="module")
 def size_kde(all_frames):
-    return B.fit_size_kde(all_frames["train"][0], CFG.region_m)
+    return B.fit_size_kde(all_frames["train"][0], CFG.grid.region_m)
 
 
 @pytest.fixture(scope="module")
@@ -76,16 +76,18 @@ def aligned_with_nearby_lane(pos, heading, starts, dirs, radius=1.0, tol_deg=10.
 def test_valid_scenes_on_real_frames(method, frames, generated):
     counts = []
     for frame, actors in zip(frames, generated[method], strict=True):
-        assert actors.valid.shape == (CFG.max_actors,)
+        assert actors.valid.shape == (CFG.grid.max_actors,)
         assert isinstance(actors.position, np.ndarray) and actors.position.dtype == np.float32
-        Scene(actors=actors, ego=make_ego(CFG.ego_size_m)).validate(CFG)  # values, region, order
+        Scene(actors=actors, ego=make_ego(CFG.grid.ego_size_m)).validate(
+            CFG.grid
+        )  # values, region, order
         cls, pos, size, heading, vel = valid_rows(actors)
         n = len(cls)
         counts.append(n)
         assert np.all(actors.valid[:n]) and not np.any(actors.valid[n:])
         assert set(cls.tolist()) <= {VEHICLE, BICYCLIST}
-        assert np.all(np.abs(pos) < CFG.region_m / 2)
-        assert np.all(np.diff(np.asarray(bin_index(pos, CFG))) >= 0)  # canonical order
+        assert np.all(np.abs(pos) < CFG.grid.region_m / 2)
+        assert np.all(np.diff(np.asarray(bin_index(pos, CFG.grid))) >= 0)  # canonical order
         speed = np.linalg.norm(vel, axis=1)
         limits = np.array([B.SPEED_LIMIT_MS[c] for c in cls])
         assert np.all(speed <= limits + 1e-4)
@@ -257,7 +259,7 @@ def test_empty_map_gives_an_empty_scene(size_kde):
         B.prob_grammar(np.random.default_rng(0), frame, CFG),
         B.procedural(np.random.default_rng(0), frame, CFG, size_kde),
     ):
-        assert actors.valid.shape == (CFG.max_actors,) and not actors.valid.any()
+        assert actors.valid.shape == (CFG.grid.max_actors,) and not actors.valid.any()
 
 
 def test_max_actors_caps_the_scene(frames, size_kde):
@@ -267,7 +269,7 @@ def test_max_actors_caps_the_scene(frames, size_kde):
         B.procedural(np.random.default_rng(0), frames[0], cfg, size_kde),
     ):
         assert actors.valid.shape == (5,) and actors.valid.all()
-        Scene(actors=actors, ego=make_ego(cfg.ego_size_m)).validate(cfg)
+        Scene(actors=actors, ego=make_ego(cfg.grid.ego_size_m)).validate(cfg.grid)
 
 
 # ------------------------------------------------------------------------ geometry, KDE

@@ -78,7 +78,9 @@ def test_damaged_newest_checkpoint_is_set_aside_and_the_rerun_finishes(
           progress=False)
     # Every scene of the tiny cache holds 13 or more actors in the region, CFG 6 slots.
     n = len(tiny_train_cache)
-    assert f"{n} of {n} scenes hold more than max_actors = {CFG.max_actors} actors" in caplog.text
+    assert (
+        f"{n} of {n} scenes hold more than max_actors = {CFG.grid.max_actors} actors" in caplog.text
+    )
     assert "damaged checkpoint moved to" in caplog.text
     aside = os.listdir(os.path.join(workdir, "checkpoints.damaged"))
     assert len(aside) == 1 and aside[0].startswith(f"{STEPS}-")
@@ -92,8 +94,7 @@ def test_damaged_newest_checkpoint_is_set_aside_and_the_rerun_finishes(
     assert logged == list(range(2, STEPS + 1, 2))
 
 
-def test_a_config_of_other_shapes_is_named_not_set_aside(tiny_train_cache, eight_steps,
-                                                        tmp_path):
+def test_a_config_of_other_shapes_is_named_not_set_aside(tiny_train_cache, eight_steps, tmp_path):
     """A workdir whose config.json no longer gives the checkpoints' shapes (edited by hand):
     loading names the checkpoint and the first array whose shape differs, and a training run
     refuses it too instead of setting every checkpoint aside as damaged and starting again."""
@@ -103,19 +104,46 @@ def test_a_config_of_other_shapes_is_named_not_set_aside(tiny_train_cache, eight
     path = os.path.join(workdir, "config.json")
     with open(path) as f:
         saved = json.load(f)
-    wider = {**saved, "hidden": 2 * saved["hidden"], "gn_groups": 2 * saved["gn_groups"]}
+    h = saved["model"]["hidden"]
+    wider = {**saved, "model": {**saved["model"], "hidden": 2 * h, "gn_groups": 2 * h}}
     with open(path, "w") as f:
         json.dump(wider, f)
-    h = saved["hidden"]
-    want = (rf"{os.path.join(workdir, 'checkpoints')}/8: \['params'\]\['backbone0_b'\]: saved "
-            rf"with shape \({h},\), the config's model has \({2 * h},\)")
+    want = (
+        rf"{os.path.join(workdir, 'checkpoints')}/8: \['params'\]\['backbone0_b'\]: saved "
+        rf"with shape \({h},\), the config's model has \({2 * h},\)"
+    )
     with pytest.raises(ValueError, match=want):
         load_params(workdir)
     with pytest.raises(ValueError, match="another config"):
-        train(CFG.replace(hidden=wider["hidden"], gn_groups=wider["gn_groups"]),
-              tiny_train_cache.path, workdir, 12, save_every=EVERY, keep=2, progress=False)
+        train(
+            CFG.replace(hidden=2 * h, gn_groups=2 * h),
+            tiny_train_cache.path,
+            workdir,
+            12,
+            save_every=EVERY,
+            keep=2,
+            progress=False,
+        )
     assert _steps(workdir) == [4, 8]
     assert not os.path.exists(os.path.join(workdir, "checkpoints.damaged"))
+
+
+def test_a_workdir_with_a_one_level_config_loads_and_resumes(tiny_train_cache, eight_steps,
+                                                             tmp_path):
+    """A workdir written before the sub-configs (its config.json one level, every field at
+    the top) loads as the same config and parameters, and training resumes it."""
+    from scenegen_jax.workdir import load_params
+
+    workdir = _copy(eight_steps, tmp_path)
+    path = os.path.join(workdir, "config.json")
+    with open(path, "w") as f:
+        json.dump(CFG.flat(), f)  # the one-level form: {"name": ..., "grid_size": ..., ...}
+    cfg, params, step = load_params(workdir)
+    assert (cfg, step) == (CFG, 8)
+    _assert_same(params, load_params(eight_steps)[1])
+    state = train(CFG, tiny_train_cache.path, workdir, 9, save_every=EVERY, keep=2,
+                  progress=False)
+    assert int(state.step) == 9 and _steps(workdir) == [8, 9]
 
 
 def test_tree_checksums_hash_dtype_shape_and_values():
@@ -129,12 +157,16 @@ def test_tree_checksums_hash_dtype_shape_and_values():
     for other in (changed, x.reshape(3, 2), x.view(np.int32)):  # one value, shape, dtype
         assert tree_checksums({"a": other})["['a']"] != want
     # A key is hashed as its data: the same key, the same sum; another key, another sum.
-    assert (tree_checksums({"k": jax.random.key(1)}) == tree_checksums({"k": jax.random.key(1)})
-            != tree_checksums({"k": jax.random.key(2)}))
+    assert (
+        tree_checksums({"k": jax.random.key(1)})
+        == tree_checksums({"k": jax.random.key(1)})
+        != tree_checksums({"k": jax.random.key(2)})
+    )
 
 
-def test_changed_array_bytes_are_caught_by_the_checksums(tiny_train_cache, eight_steps, tmp_path,
-                                                         caplog):
+def test_changed_array_bytes_are_caught_by_the_checksums(
+    tiny_train_cache, eight_steps, tmp_path, caplog
+):
     workdir = _copy(eight_steps, tmp_path)
     # What a flipped byte inside a parameter file gives when the format does not notice: the
     # arrays restore, with other values than were saved.
@@ -160,8 +192,9 @@ def test_changed_array_bytes_are_caught_by_the_checksums(tiny_train_cache, eight
     assert len(os.listdir(os.path.join(workdir, "checkpoints.damaged"))) == 2
 
 
-def test_a_changed_or_missing_file_is_named_before_orbax_reads_it(eight_steps, tmp_path,
-                                                                   caplog, monkeypatch):
+def test_a_changed_or_missing_file_is_named_before_orbax_reads_it(
+    eight_steps, tmp_path, caplog, monkeypatch
+):
     import hashlib
 
     import orbax.checkpoint as ocp
@@ -171,9 +204,13 @@ def test_a_changed_or_missing_file_is_named_before_orbax_reads_it(eight_steps, t
     with open(os.path.join(folder, CHECKSUM_FILE)) as f:
         sums = json.load(f)
     # Every file orbax wrote has its sha256 beside the arrays' (hashlib on the whole file).
-    files = sorted(os.path.relpath(os.path.join(r, n), folder)
-                   for r, _, names in os.walk(folder) for n in names if n != CHECKSUM_FILE)
-    assert sorted(k[len("file:"):] for k in sums if k.startswith("file:")) == files
+    files = sorted(
+        os.path.relpath(os.path.join(r, n), folder)
+        for r, _, names in os.walk(folder)
+        for n in names
+        if n != CHECKSUM_FILE
+    )
+    assert sorted(k[len("file:") :] for k in sums if k.startswith("file:")) == files
     for rel in files:
         with open(os.path.join(folder, rel), "rb") as f:
             assert sums["file:" + rel] == hashlib.sha256(f.read()).hexdigest(), rel

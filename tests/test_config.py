@@ -46,10 +46,10 @@ def test_bad_overrides_name_the_field(override, message):
 
 
 def test_booleans_parse_exactly():
-    assert get_config("tiny", rotate_augment="false").rotate_augment is False
-    assert get_config("tiny", remat="True").remat is True
-    assert get_config("tiny", remat="auto").remat == "auto"
-    assert get_config("paper", remat="false").remat is False
+    assert get_config("tiny", rotate_augment="false").train.rotate_augment is False
+    assert get_config("tiny", remat="True").train.remat is True
+    assert get_config("tiny", remat="auto").train.remat == "auto"
+    assert get_config("paper", remat="false").train.remat is False
     with pytest.raises(ValueError, match=r'remat: must be true, false or "auto"'):
         get_config("tiny").replace(remat="sometimes")
 
@@ -67,10 +67,62 @@ def test_damaged_config_json_names_the_file_and_field():
     d = json.loads(text)
     with pytest.raises(ValueError, match=r"w/config.json: unknown config field\(s\) \['bogus'\]"):
         Config.from_json(json.dumps({**d, "bogus": 1}), "w/config.json")
+    model = d["model"]
     with pytest.raises(ValueError, match="w/config.json: field hidden: expected int"):
-        Config.from_json(json.dumps({**d, "hidden": "16"}), "w/config.json")
+        Config.from_json(json.dumps({**d, "model": {**model, "hidden": "16"}}), "w/config.json")
     with pytest.raises(ValueError, match="w/config.json: invalid config: gn_groups"):
-        Config.from_json(json.dumps({**d, "gn_groups": 5}), "w/config.json")
+        Config.from_json(json.dumps({**d, "model": {**model, "gn_groups": 5}}), "w/config.json")
+    with pytest.raises(ValueError, match=r"w/config.json: field\(s\) \['hidden'\] given twice"):
+        Config.from_json(json.dumps({**d, "hidden": 16}), "w/config.json")
+    with pytest.raises(ValueError, match="w/config.json: field train: expected an object"):
+        Config.from_json(json.dumps({**d, "train": [1]}), "w/config.json")
+
+
+def test_sub_configs_hold_each_concern():
+    cfg = get_config("cpu", learning_rate="3e-4", proposals="20", hidden="32", gn_groups="32")
+    assert cfg.grid is cfg.model.grid
+    assert (cfg.grid.grid_size, cfg.grid.m_per_px, cfg.grid.region_m) == (64, 1.25, 80.0)
+    assert (cfg.model.hidden, cfg.model.num_mixtures) == (32, 10)
+    assert (cfg.train.learning_rate, cfg.sample.proposals) == (3e-4, 20)
+    # A training setting leaves the model config, which the scorer and sampler compile
+    # against, equal (and equally hashed).
+    other = cfg.replace(learning_rate=1e-3, seed=5, batch_size=8)
+    assert other.model == cfg.model and hash(other.model) == hash(cfg.model)
+    assert other.train != cfg.train
+    # Whole sub-configs replace as one.
+    assert cfg.replace(model=PRESETS["tiny"].model).model == PRESETS["tiny"].model
+    assert cfg.replace(train=PRESETS["tiny"].train).train == PRESETS["tiny"].train
+    assert cfg.flat()["hidden"] == 32 and set(cfg.flat()) == set(PRESETS["tiny"].flat())
+
+
+def test_one_level_config_json_of_older_workdirs_reads_as_the_same_config():
+    # The form written before the sub-configs: every field at the top level (hand-written
+    # here, field by field as that writer wrote them).
+    old = {"name": "cpu", "grid_size": 64, "m_per_px": 1.25,
+           "map_layers": ["lanes", "drivable", "crosswalks", "nearest_lane", "dataset"],
+           "max_actors": 39, "hidden": 16, "backbone_layers": 5, "gn_groups": 16,
+           "num_mixtures": 10, "hard_negatives": 4096, "bptt_window": 20, "batch_size": 4,
+           "learning_rate": 0.003, "warmup_steps": 50, "decay_steps": 250, "grad_clip": 1.0,
+           "ema_decay": 0.0, "proposals": 10, "zero_speed": 0.2, "pedestrian_size_m": 0.6,
+           "ego_size_m": [1.95, 4.9], "rotate_augment": True, "map_dropout": 0.0,
+           "remat": False, "train_layers": [], "train_params": ["box0_b", "box0_w"],
+           "coord_channels": True, "orientation_bins": 0, "order_channel": True,
+           "attribute_map_input": True, "attribute_map_skip": True,
+           "heading_lane_frame": True, "separate_attribute_mlps": True, "seed": 70}
+    cfg = Config.from_json(json.dumps(old), "old/config.json")
+    want = get_config("cpu", map_layers="lanes,drivable,crosswalks,nearest_lane,dataset",
+                      learning_rate="3e-3", warmup_steps="50", decay_steps="250",
+                      train_params="box0_b,box0_w", coord_channels="true",
+                      order_channel="true", attribute_map_input="true",
+                      attribute_map_skip="true", heading_lane_frame="true", seed="70")
+    assert cfg == want, cfg.differences(want)
+    assert Config.from_json(cfg.to_json()) == cfg  # and it is written nested from now on
+    assert set(json.loads(cfg.to_json())) == {"name", "model", "train", "sample"}
+    # A config without the fields added later (older still) takes their defaults.
+    later = ("separate_attribute_mlps", "attribute_map_input", "attribute_map_skip",
+             "heading_lane_frame", "seed")
+    older = {k: v for k, v in old.items() if k not in later}
+    assert Config.from_json(json.dumps(older)).model.separate_attribute_mlps is False
 
 
 def test_config_mismatch_names_the_fields(tmp_path):

@@ -64,7 +64,7 @@ def _assert_same_training(workdir_a, workdir_b, step):
     _, b = load_trained(workdir_b, step)
     init, a, b = (flatten_dict(jax.device_get(p), sep="/")
                   for p in (init_state(cfg).params, a.params, b.params))
-    assert_same_adam_training(init, a, b, cfg.learning_rate, step)
+    assert_same_adam_training(init, a, b, cfg.train.learning_rate, step)
 
 
 @pytest.fixture(scope="module")

@@ -15,8 +15,8 @@ from scenegen_jax.config import Config
 from scenegen_jax.scene import BICYCLIST, PEDESTRIAN, STOP, VEHICLE, Actors, bin_index
 
 K = 3
-CFG = Config(grid_size=8, m_per_px=2.0, num_mixtures=K, zero_speed=0.2)
-N_BINS = CFG.grid_size**2
+CFG = Config().replace(grid_size=8, m_per_px=2.0, num_mixtures=K, zero_speed=0.2)
+N_BINS = CFG.grid.grid_size**2
 TAU = 2.0 * np.pi
 
 
@@ -222,7 +222,8 @@ def test_location_and_hard_negative_match_numpy():
     logits = rng.normal(0, 3, N_BINS).astype(np.float32)
     full = sps.log_softmax(logits.astype(np.float64))
     for b in (0, 17, N_BINS - 1):
-        assert_close(D.location_log_prob(logits, b, CFG.bin_area), full[b] - np.log(CFG.bin_area))
+        area = CFG.grid.bin_area
+        assert_close(D.location_log_prob(logits, b, area), full[b] - np.log(area))
         for n in (N_BINS, N_BINS + 5):
             assert_close(D.hard_negative_log_prob(logits, b, n), full[b], rtol=1e-6, atol=1e-6)
     weakest = int(np.argmin(logits))  # never in the top n unless forced
@@ -243,10 +244,10 @@ def test_class_log_prob_and_masked_location():
     assert_close(D.class_log_prob(logits, STOP), sps.log_softmax(np.array(logits))[3])
     loc = np.random.default_rng(4).normal(size=N_BINS).astype(np.float32)
     mask = D.ordering_mask(10, N_BINS)
-    lp, ok = D.masked_location_log_prob(loc, mask, 12, CFG.bin_area)
+    lp, ok = D.masked_location_log_prob(loc, mask, 12, CFG.grid.bin_area)
     assert bool(ok)
-    assert_close(lp, sps.log_softmax(loc[10:].astype(np.float64))[2] - np.log(CFG.bin_area))
-    assert D.masked_location_log_prob(loc, mask, 9, CFG.bin_area)[0] == -np.inf
+    assert_close(lp, sps.log_softmax(loc[10:].astype(np.float64))[2] - np.log(CFG.grid.bin_area))
+    assert D.masked_location_log_prob(loc, mask, 9, CFG.grid.bin_area)[0] == -np.inf
 
 
 # ----------------------------------------------------------------------------- normalisation
@@ -291,10 +292,10 @@ def test_velocity_point_mass_plus_density_integrates_to_one_cartesian():
     pts = np.stack([vx.ravel(), vy.ravel()], -1).astype(np.float32)
 
     def lp(raw, v):
-        return D.velocity_log_prob(raw, v, 0.4, True, CFG.zero_speed)
+        return D.velocity_log_prob(raw, v, 0.4, True, CFG.grid.zero_speed)
 
     dens = np.exp(np.asarray(vmap_lp(lp)(VEL_RAW, pts), np.float64))
-    moving = np.hypot(pts[:, 0], pts[:, 1]) > CFG.zero_speed
+    moving = np.hypot(pts[:, 0], pts[:, 1]) > CFG.grid.zero_speed
     pi0 = np.exp(sps.log_softmax(VEL_RAW[:3].astype(np.float64))[0])
     total = pi0 + np.sum(dens[moving]) * h * h
     assert abs(total - 1.0) < 1e-3, total
@@ -323,13 +324,13 @@ def test_velocity_truncated_speed_normalised_in_polar_coordinates():
 def test_location_density_sums_to_one_over_region():
     logits = np.random.default_rng(5).normal(0, 4, N_BINS).astype(np.float32)
     bins = jnp.arange(N_BINS)
-    lp = jax.vmap(D.location_log_prob, in_axes=(None, 0, None))(logits, bins, CFG.bin_area)
-    assert abs(float(jnp.sum(jnp.exp(lp))) * CFG.bin_area - 1.0) < 1e-3
+    lp = jax.vmap(D.location_log_prob, in_axes=(None, 0, None))(logits, bins, CFG.grid.bin_area)
+    assert abs(float(jnp.sum(jnp.exp(lp))) * CFG.grid.bin_area - 1.0) < 1e-3
     mask = D.ordering_mask(20, N_BINS)
     mlp = jax.vmap(D.masked_location_log_prob, in_axes=(None, None, 0, None))(
-        logits, mask, bins, CFG.bin_area
+        logits, mask, bins, CFG.grid.bin_area
     )[0]
-    assert abs(float(jnp.sum(jnp.exp(mlp))) * CFG.bin_area - 1.0) < 1e-3
+    assert abs(float(jnp.sum(jnp.exp(mlp))) * CFG.grid.bin_area - 1.0) < 1e-3
 
 
 # ----------------------------------------------------------------------------- samplers
@@ -388,8 +389,13 @@ def test_vonmises_from_uniforms_matches_scipy_and_a_wrong_concentration_fails(ka
     loc = 2.5
     direction = jnp.array([np.cos(loc), np.sin(loc)], jnp.float32)
     keys = jax.random.split(jax.random.key(int(kappa * 1000)), N_DRAWS)
-    draws = jax.jit(jax.vmap(lambda k: vonmises_from_uniforms(
-        D.uniforms(k, (VONMISES_UNIFORMS,)), direction, jnp.log(jnp.float32(kappa)))))(keys)
+    draws = jax.jit(
+        jax.vmap(
+            lambda k: vonmises_from_uniforms(
+                D.uniforms(k, (VONMISES_UNIFORMS,)), direction, jnp.log(jnp.float32(kappa))
+            )
+        )
+    )(keys)
     offset = np.asarray(draws, np.float64) - loc
     assert np.all(np.abs(offset) <= np.pi + 1e-5)
     assert stats.kstest(offset, stats.vonmises(kappa).cdf).pvalue > 0.01
@@ -456,16 +462,16 @@ def test_location_sampler_respects_order_and_density():
     prev = 37
     mask = D.ordering_mask(prev, N_BINS)
     keys = jax.random.split(jax.random.key(5), 20000)
-    fn = jax.jit(jax.vmap(lambda k: D.sample_location(k, logits, CFG, mask)))
+    fn = jax.jit(jax.vmap(lambda k: D.sample_location(k, logits, CFG.grid, mask)))
     bins, pos, ok = (np.asarray(x) for x in fn(keys))
     assert ok.all() and bins.min() >= prev
-    np.testing.assert_array_equal(np.asarray(bin_index(pos, CFG)), bins)
+    np.testing.assert_array_equal(np.asarray(bin_index(pos, CFG.grid)), bins)
     counts = np.bincount(bins, minlength=N_BINS)[prev:]
     want = np.exp(sps.log_softmax(logits[prev:].astype(np.float64))) * len(bins)
     assert stats.chisquare(counts, want).pvalue > 0.01
     # Uniform inside the bin: x offset from the bin's left edge, in pixels.
-    frac_x = (pos[:, 0] + CFG.region_m / 2) / CFG.m_per_px - bins % CFG.grid_size
-    frac_y = (CFG.region_m / 2 - pos[:, 1]) / CFG.m_per_px - bins // CFG.grid_size
+    frac_x = (pos[:, 0] + CFG.grid.region_m / 2) / CFG.grid.m_per_px - bins % CFG.grid.grid_size
+    frac_y = (CFG.grid.region_m / 2 - pos[:, 1]) / CFG.grid.m_per_px - bins // CFG.grid.grid_size
     assert min(stats.kstest(f, "uniform").pvalue for f in (frac_x, frac_y)) > 0.01
 
 
@@ -478,8 +484,9 @@ def test_bin_sampler_draws_the_categorical():
     log_probs[[3, 17, 40]] = -np.inf
     log_probs[16:24] = -np.inf  # row 2
     log_probs = sps.log_softmax(log_probs)
-    fn = jax.jit(jax.vmap(lambda k: D.sample_bins(k, jnp.asarray(log_probs, jnp.float32), 4,
-                                                  width)))
+    fn = jax.jit(
+        jax.vmap(lambda k: D.sample_bins(k, jnp.asarray(log_probs, jnp.float32), 4, width))
+    )
     bins = np.asarray(fn(jax.random.split(jax.random.key(6), 10000))).ravel()
     assert bins.dtype == np.int32 and bins.shape == (40000,)
     counts = np.bincount(bins, minlength=log_probs.size)
@@ -498,12 +505,12 @@ def test_ordering_mask_with_nothing_left_is_finite():
     assert not bool(mask.any())
 
     def f(lg):
-        return D.masked_location_log_prob(lg, mask, N_BINS - 1, CFG.bin_area)[0]
+        return D.masked_location_log_prob(lg, mask, N_BINS - 1, CFG.grid.bin_area)[0]
 
-    lp, ok = D.masked_location_log_prob(logits, mask, N_BINS - 1, CFG.bin_area)
+    lp, ok = D.masked_location_log_prob(logits, mask, N_BINS - 1, CFG.grid.bin_area)
     assert not bool(ok) and lp == -np.inf
     assert np.all(np.isfinite(np.asarray(jax.grad(f)(logits))))
-    b, pos, ok = D.sample_location(jax.random.key(0), logits, CFG, mask)
+    b, pos, ok = D.sample_location(jax.random.key(0), logits, CFG.grid, mask)
     assert int(b) == N_BINS - 1 and not bool(ok) and np.all(np.isfinite(np.asarray(pos)))
 
 
@@ -514,15 +521,15 @@ def attribute_cases():
     return {
         "class": (D.sample_class, D.class_log_prob, rng.normal(size=4).astype(np.float32)),
         "location": (
-            lambda k, lg: D.sample_location(k, lg, CFG, mask),
-            lambda lg, s: D.masked_location_log_prob(lg, mask, s[0], CFG.bin_area)[0],
+            lambda k, lg: D.sample_location(k, lg, CFG.grid, mask),
+            lambda lg, s: D.masked_location_log_prob(lg, mask, s[0], CFG.grid.bin_area)[0],
             rng.normal(size=N_BINS).astype(np.float32),
         ),
         "box": (D.sample_box, D.box_log_prob, rand_box_raw(rng)),
         "heading": (D.sample_heading, D.heading_log_prob, rand_heading_raw(rng, log_kappa=(0, 3))),
         "velocity": (
-            lambda k, r: D.sample_velocity(k, r, 0.3, True, CFG.zero_speed),
-            lambda r, v: D.velocity_log_prob(r, v, 0.3, True, CFG.zero_speed),
+            lambda k, r: D.sample_velocity(k, r, 0.3, True, CFG.grid.zero_speed),
+            lambda r, v: D.velocity_log_prob(r, v, 0.3, True, CFG.grid.zero_speed),
             rand_velocity_raw(rng),
         ),
     }
@@ -540,11 +547,13 @@ def test_best_of_m_picks_most_likely_draw(name):
         lps = np.array([float(log_prob_j(params, d)) for d in draws])
         assert len(set(np.round(lps, 4))) > 1 or name == "class"  # draws actually differ
         want = draws[int(np.argmax(lps))]
-        jax.tree_util.tree_map(lambda x, w, r=r: np.testing.assert_array_equal(x[r], w),
-                               best, want)
+        jax.tree_util.tree_map(lambda x, w, r=r: np.testing.assert_array_equal(x[r], w), best, want)
     one = jax.jit(lambda k, p: D.best_of_m(k, sample_j, log_prob_j, p, 1))(keys, batched)
-    jax.tree_util.tree_map(lambda x, w: np.testing.assert_array_equal(x[0], w), one,
-                           sample_j(jax.random.split(keys[0], 1)[0], params))
+    jax.tree_util.tree_map(
+        lambda x, w: np.testing.assert_array_equal(x[0], w),
+        one,
+        sample_j(jax.random.split(keys[0], 1)[0], params),
+    )
 
 
 # ----------------------------------------------------------------------------- actor term
@@ -577,17 +586,17 @@ def actor(cls, position=(3.1, -5.2), size=(1.9, 4.6), heading=0.8, velocity=(4.0
 def test_actor_log_likelihood_terms_and_masking():
     head = head_for(np.random.default_rng(10))
     tgt = actor(VEHICLE)
-    full = actor_ll(head, tgt, False, CFG)
-    train = actor_ll(head, tgt, False, CFG, hard_negatives=5)
-    ped = actor_ll(head, actor(PEDESTRIAN), False, CFG)
+    full = actor_ll(head, tgt, False, CFG.model)
+    train = actor_ll(head, tgt, False, CFG.model, hard_negatives=5)
+    ped = actor_ll(head, actor(PEDESTRIAN), False, CFG.model)
 
     @jax.jit
     def reference(h, t):
-        b = bin_index(t.position, CFG)
+        b = bin_index(t.position, CFG.grid)
         return {
             "vehicle": D.class_log_prob(h.class_logits, VEHICLE),
             "pedestrian": D.class_log_prob(h.class_logits, PEDESTRIAN),
-            "location": D.location_log_prob(h.location_logits, b, CFG.bin_area),
+            "location": D.location_log_prob(h.location_logits, b, CFG.grid.bin_area),
             "hard_negative": D.hard_negative_log_prob(h.location_logits, b, 5),
             "box": D.box_log_prob(h.box, t.size),
             "heading": D.heading_log_prob(h.heading, t.heading),
@@ -599,7 +608,7 @@ def test_actor_log_likelihood_terms_and_masking():
     for name in ("location", "box", "heading", "velocity"):
         assert_close(full[name], ref[name])
     assert_close(full["class"], ref["vehicle"])
-    assert_close(train["location"], ref["hard_negative"] - np.log(CFG.bin_area))
+    assert_close(train["location"], ref["hard_negative"] - np.log(CFG.grid.bin_area))
     assert float(train["location"]) > float(full["location"])
     for name in ("class", "box", "heading", "velocity"):
         assert_close(train[name], full[name], rtol=0, atol=0)
@@ -611,12 +620,12 @@ def test_actor_log_likelihood_terms_and_masking():
 
     relative = [bool(D.is_relative_direction(c)) for c in (VEHICLE, PEDESTRIAN, BICYCLIST)]
     assert relative == [True, False, True]
-    bike = actor_ll(head, actor(BICYCLIST), False, CFG)
+    bike = actor_ll(head, actor(BICYCLIST), False, CFG.model)
     assert_close(bike["velocity"], ref["velocity"])  # relative direction, like vehicles
 
     garbage = actor(VEHICLE, size=(0.0, np.nan), velocity=(np.nan, 0.0), heading=np.nan)
     for stop_target, flag in ((garbage, True), (actor(STOP), False)):
-        stop = actor_ll(head, stop_target, flag, CFG, hard_negatives=5)
+        stop = actor_ll(head, stop_target, flag, CFG.model, hard_negatives=5)
         assert_close(stop["class"], sps.log_softmax(np.asarray(head.class_logits))[STOP])
         assert all(float(stop[n]) == 0.0 for n in ("location", "box", "heading", "velocity"))
         g = total_grad(head, stop_target, flag)
@@ -627,8 +636,8 @@ def test_actor_log_likelihood_terms_and_masking():
 def test_jit_equals_no_jit():
     head = head_for(np.random.default_rng(11))
     tgt = actor(VEHICLE)
-    eager = D.actor_log_likelihood(head, tgt, False, CFG, hard_negatives=7)
-    jitted = jax.jit(lambda h, t: D.actor_log_likelihood(h, t, False, CFG, hard_negatives=7))
+    eager = D.actor_log_likelihood(head, tgt, False, CFG.model, hard_negatives=7)
+    jitted = jax.jit(lambda h, t: D.actor_log_likelihood(h, t, False, CFG.model, hard_negatives=7))
     for name, value in jitted(head, tgt).items():
         assert_close(value, eager[name], rtol=1e-6, atol=1e-6)
     key = jax.random.key(12)
@@ -636,7 +645,7 @@ def test_jit_equals_no_jit():
         np.testing.assert_allclose(jax.jit(fn)(key, raw), fn(key, raw), rtol=1e-6)
 
     def v_fn(k, r):
-        return D.sample_velocity(k, r, 0.3, True, CFG.zero_speed)
+        return D.sample_velocity(k, r, 0.3, True, CFG.grid.zero_speed)
 
     np.testing.assert_allclose(jax.jit(v_fn)(key, head.velocity), v_fn(key, head.velocity), 1e-6)
 
@@ -656,8 +665,8 @@ def total_value_and_grad(head, target, is_stop):
     """Sum of training and evaluation terms, and its gradient with respect to the head."""
 
     def total(h):
-        train = D.actor_log_likelihood(h, target, is_stop, CFG, hard_negatives=9)
-        evaluation = D.actor_log_likelihood(h, target, is_stop, CFG)
+        train = D.actor_log_likelihood(h, target, is_stop, CFG.model, hard_negatives=9)
+        evaluation = D.actor_log_likelihood(h, target, is_stop, CFG.model)
         return sum(train.values()) + sum(evaluation.values())
 
     return jax.value_and_grad(total)(head)
@@ -672,8 +681,8 @@ def sample_all(key, head):
     return (
         D.sample_box(key, head.box),
         D.sample_heading(key, head.heading),
-        D.sample_velocity(key, head.velocity, 0.5, True, CFG.zero_speed),
-        D.sample_location(key, head.location_logits, CFG)[1],
+        D.sample_velocity(key, head.velocity, 0.5, True, CFG.grid.zero_speed),
+        D.sample_location(key, head.location_logits, CFG.grid)[1],
         D.sample_class(key, head.class_logits),
     )
 
@@ -710,7 +719,7 @@ def test_check_grads_velocity_and_box_log_likelihood():
 
         @jax.jit
         def vel(raw):
-            return D.velocity_log_prob(raw, v, 0.4, True, CFG.zero_speed)
+            return D.velocity_log_prob(raw, v, 0.4, True, CFG.grid.zero_speed)
 
         @jax.jit
         def box(raw):

@@ -220,7 +220,7 @@ def test_heading_is_relative_to_the_ego():
         velocity=np.zeros((1, 2)),
         valid=np.array([True]),
     )
-    scene = Scene(actors=actors, ego=make_ego(cfg.ego_size_m, heading=0.5 * np.pi))
+    scene = Scene(actors=actors, ego=make_ego(cfg.grid.ego_size_m, heading=0.5 * np.pi))
     assert M.scene_statistics(scene)["heading"][0] == 1.0
     assert M.scene_statistics(actors)["heading"][4] == 1.0  # 90 degrees, ego heading 0
 

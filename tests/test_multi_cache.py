@@ -59,7 +59,7 @@ def _write(path, n, seed, kind, cfg=CFG):
     return str(path)
 
 
-B_ACTORS = CFG.max_actors - 4  # the second cache's actors; its slots are 2 * B_ACTORS
+B_ACTORS = CFG.grid.max_actors - 4  # the second cache's actors; its slots are 2 * B_ACTORS
 
 
 @pytest.fixture(scope="module")
@@ -135,8 +135,8 @@ def test_order_is_a_pure_function_of_seed_and_step(caches):
     u1, u2 = load_union([a, b], CFG), load_union([a, b], CFG)
     w = resolve_weights(u1.sizes, [1.0, 3.0])
     for step in (0, 3, 17):
-        x = gather_batch(u1, union_indices(u1, w, 4, 0, step), CFG)
-        y = gather_batch(u2, union_indices(u2, w, 4, 0, step), CFG)
+        x = gather_batch(u1, union_indices(u1, w, 4, 0, step), CFG.grid)
+        y = gather_batch(u2, union_indices(u2, w, 4, 0, step), CFG.grid)
         for p, q in zip(jax.tree.leaves(x), jax.tree.leaves(y), strict=True):
             np.testing.assert_array_equal(p, q)
 
@@ -151,8 +151,8 @@ def test_union_reads_each_cache_in_place(caches):
     assert isinstance(u, CacheUnion) and len(u) == 12 and u.sizes == [7, 5]
     assert u.labels == ["av2:a", "womd_json:b"]
     assert all(isinstance(m.maps, np.memmap) for m in u.members)  # maps stay on disk
-    assert u.actors.cls.shape == (12, 2 * CFG.max_actors)  # b's fewer slots padded
-    batch = gather_batch(u, np.array([1, 7 + 2]), CFG)
+    assert u.actors.cls.shape == (12, 2 * CFG.grid.max_actors)  # b's fewer slots padded
+    batch = gather_batch(u, np.array([1, 7 + 2]), CFG.grid)
     np.testing.assert_array_equal(batch.canvas[1], cb.maps[2])
     np.testing.assert_array_equal(batch.actors.position[0], ca.actors.position[1])
     slots = 2 * B_ACTORS

@@ -25,13 +25,20 @@ from scenegen_jax.train.step import (
 def test_location_head_single_example_path_agrees(tiny_train_cache):
     cfg = CFG
     params = random_params(cfg, jax.random.key(4))
-    f = jax.random.normal(jax.random.key(5), (3, cfg.grid_size, cfg.grid_size, cfg.hidden))
+    f = jax.random.normal(
+        jax.random.key(5), (3, cfg.grid.grid_size, cfg.grid.grid_size, cfg.model.hidden)
+    )
     cls = jnp.array([2, 0, 1])
-    net = SceneGenNet(cfg)
+    net = SceneGenNet(cfg.model)
     batched = net.apply({"params": params}, f, cls, method=SceneGenNet.location_logits)
     for i in range(3):
-        one = net.apply({"params": params}, f[i : i + 1], cls[i : i + 1], True,
-                        method=SceneGenNet.location_logits)
+        one = net.apply(
+            {"params": params},
+            f[i : i + 1],
+            cls[i : i + 1],
+            True,
+            method=SceneGenNet.location_logits,
+        )
         np.testing.assert_allclose(one[0], batched[i], rtol=1e-4, atol=1e-4)
 
 
@@ -70,8 +77,9 @@ def test_banded_weight_gradient_equals_the_convolutions_own(monkeypatch):
     x = jax.random.normal(kx, (2, rows, 7, 3))
 
     def xla(x, w):
-        return jax.lax.conv_general_dilated(x, w, (1, 1), "SAME",
-                                            dimension_numbers=("NHWC", "HWIO", "NHWC"))
+        return jax.lax.conv_general_dilated(
+            x, w, (1, 1), "SAME", dimension_numbers=("NHWC", "HWIO", "NHWC")
+        )
 
     for k, kw in zip((5, 3, 1), jax.random.split(jax.random.key(10), 3), strict=True):
         w = jax.random.normal(kw, (k, k, 3, 4))
@@ -122,8 +130,9 @@ def test_group_norm_matches_flax():
     for i in range(3):
         one = (x[i : i + 1], scale[i], bias[i])
         np.testing.assert_allclose(per_example[i : i + 1], theirs(*one), rtol=1e-5, atol=1e-5)
-        for g_ours, g_theirs in zip((g_x[i : i + 1], g_s[i, 0, 0], g_b[i, 0, 0]),
-                                    grads(theirs, *one), strict=True):
+        for g_ours, g_theirs in zip(
+            (g_x[i : i + 1], g_s[i, 0, 0], g_b[i, 0, 0]), grads(theirs, *one), strict=True
+        ):
             np.testing.assert_allclose(g_ours, g_theirs, rtol=1e-4, atol=1e-4)
     # parameters shared by a batch: their gradient sums the examples'
     shared = grads(ours, x, scale[0], bias[0])
@@ -140,15 +149,18 @@ def test_attribute_map_skip_adds_the_map_at_the_bin_linearly_to_each_output():
     params = init_state(skip_cfg, seed=5).params
     mlp_only = {k: v for k, v in params.items() if not k.endswith("2_map_w")}
     rng = np.random.default_rng(6)
-    weights = {f"{a}2_map_w": rng.normal(size=params[f"{a}2_map_w"].shape).astype(np.float32)
-               for a in ("box", "heading", "velocity")}
-    feat = jax.random.normal(jax.random.key(3), (4, CFG.hidden))
-    map_feat = jax.random.uniform(jax.random.key(4), (4, len(CFG.map_channels)))
+    weights = {
+        f"{a}2_map_w": rng.normal(size=params[f"{a}2_map_w"].shape).astype(np.float32)
+        for a in ("box", "heading", "velocity")
+    }
+    feat = jax.random.normal(jax.random.key(3), (4, CFG.model.hidden))
+    map_feat = jax.random.uniform(jax.random.key(4), (4, len(CFG.grid.map_channels)))
     cls = jnp.array([0, 2, 1, 0])
 
     def attrs(cfg, p):
-        return SceneGenNet(cfg).apply({"params": p}, feat, cls, map_feat,
-                                      method=SceneGenNet.attributes)
+        return SceneGenNet(cfg.model).apply(
+            {"params": p}, feat, cls, map_feat, method=SceneGenNet.attributes
+        )
 
     base = attrs(CFG.replace(attribute_map_input=True), mlp_only)
     for got, want in zip(attrs(skip_cfg, params), base, strict=True):
@@ -167,12 +179,13 @@ def test_initial_parameters_are_the_same_compiled_alone_or_inside_a_trace():
     the same parameters, and `jax.eval_shape` of it works (restoring a checkpoint uses it)."""
     from scenegen_jax.model.network import init_params
 
-    alone = init_params(CFG, jax.random.key(3))
-    traced = jax.jit(lambda k: init_params(CFG, k))(jax.random.key(3))
-    shapes = jax.eval_shape(lambda: init_params(CFG, jax.random.key(3)))
+    alone = init_params(CFG.model, jax.random.key(3))
+    traced = jax.jit(lambda k: init_params(CFG.model, k))(jax.random.key(3))
+    shapes = jax.eval_shape(lambda: init_params(CFG.model, jax.random.key(3)))
     assert jax.tree.structure(alone) == jax.tree.structure(traced) == jax.tree.structure(shapes)
-    for a, t, s in zip(jax.tree.leaves(alone), jax.tree.leaves(traced), jax.tree.leaves(shapes),
-                       strict=True):
+    for a, t, s in zip(
+        jax.tree.leaves(alone), jax.tree.leaves(traced), jax.tree.leaves(shapes), strict=True
+    ):
         assert a.shape == s.shape
         np.testing.assert_allclose(a, t, rtol=1e-6, atol=1e-7)
 
@@ -190,7 +203,7 @@ def test_initial_weights_follow_flax_initialisers_and_a_wrong_scale_fails():
     from scenegen_jax.model.initializers import TRUNCATED_STD
     from scenegen_jax.model.network import init_params
 
-    params = flatten_dict(jax.device_get(init_params(CFG, jax.random.key(7))), sep="/")
+    params = flatten_dict(jax.device_get(init_params(CFG.model, jax.random.key(7))), sep="/")
     lecun, normal = [], []
     for name, w in params.items():
         w = np.asarray(w, np.float64)
@@ -227,11 +240,11 @@ def test_a_parameter_of_the_wrong_shape_is_named_when_the_network_is_applied():
 
     from scenegen_jax.model.network import SceneGenNet, init_params
 
-    params = dict(init_params(CFG, jax.random.key(0)))
-    net = SceneGenNet(CFG)
+    params = dict(init_params(CFG.model, jax.random.key(0)))
+    net = SceneGenNet(CFG.model)
     state = net.apply({"params": params}, 1, method=SceneGenNet.initial_state)
-    assert state[0][0].shape == (1, CFG.grid_size, CFG.grid_size, CFG.hidden)
-    params["lstm2_w"] = np.zeros((5, 5, 2 * CFG.hidden, 4 * CFG.hidden + 1), np.float32)
+    assert state[0][0].shape == (1, CFG.grid.grid_size, CFG.grid.grid_size, CFG.model.hidden)
+    params["lstm2_w"] = np.zeros((5, 5, 2 * CFG.model.hidden, 4 * CFG.model.hidden + 1), np.float32)
     with pytest.raises(ScopeParamShapeError, match=r"lstm2_w.*\(5, 5, 16, 32\).*\(5, 5, 16, 33\)"):
         net.apply({"params": params}, 1, method=SceneGenNet.initial_state)
     del params["lstm2_w"]
@@ -244,8 +257,9 @@ def test_orientation_sectors_split_each_direction_between_the_two_nearest_sector
     degrees, lengths below 1 (a lane's blurred edge) and the zero vector (off every lane)."""
     deg = np.radians([0.0, 45.0, 22.5, 350.0, 180.0, 100.0, 0.0])
     length = np.array([1.0, 1.0, 1.0, 1.0, 0.5, 1.0, 0.0])
-    got = np.asarray(orientation_sectors(jnp.asarray(length * np.cos(deg)),
-                                         jnp.asarray(length * np.sin(deg)), 8))
+    got = np.asarray(
+        orientation_sectors(jnp.asarray(length * np.cos(deg)), jnp.asarray(length * np.sin(deg)), 8)
+    )
     want = np.zeros((7, 8))
     want[0, 0] = 1.0
     want[1, 1] = 1.0
@@ -257,8 +271,9 @@ def test_orientation_sectors_split_each_direction_between_the_two_nearest_sector
     # Turning every direction by one sector width moves its weights one sector on.
     a = np.random.default_rng(0).uniform(0, 2 * np.pi, 50)
     turned = orientation_sectors(jnp.cos(a + np.pi / 3), jnp.sin(a + np.pi / 3), 6)
-    np.testing.assert_allclose(turned, np.roll(orientation_sectors(jnp.cos(a), jnp.sin(a), 6),
-                                               1, axis=-1), atol=1e-5)
+    np.testing.assert_allclose(
+        turned, np.roll(orientation_sectors(jnp.cos(a), jnp.sin(a), 6), 1, axis=-1), atol=1e-5
+    )
 
 
 def test_heading_lane_frame_turns_the_heading_mixture_by_the_nearest_lane_at_the_bin():
@@ -274,18 +289,22 @@ def test_heading_lane_frame_turns_the_heading_mixture_by_the_nearest_lane_at_the
     cfg = CFG.replace(map_layers=("lanes", "nearest_lane"), heading_lane_frame=True)
     params = init_state(cfg, seed=3).params
     params = {**params, "heading2_w": params["heading2_w"] * 30.0}  # a peaked, uneven mixture
-    i, j = (cfg.map_channels.index(c) for c in ("nearest_lane_cos", "nearest_lane_sin"))
+    i, j = (cfg.grid.map_channels.index(c) for c in ("nearest_lane_cos", "nearest_lane_sin"))
     a = np.array([0.0, 0.7, 2.5, -1.9, 1.0])
     length = np.array([1.0, 1.0, 0.8, 1.0, 0.3])  # 0.3: no lane (no turn)
-    map_feat = np.zeros((5, len(cfg.map_channels)), np.float32)
+    map_feat = np.zeros((5, len(cfg.grid.map_channels)), np.float32)
     map_feat[:, i], map_feat[:, j] = length * np.cos(a), length * np.sin(a)
-    feat = jnp.broadcast_to(jax.random.normal(jax.random.key(1), (1, cfg.hidden)), (5, cfg.hidden))
+    feat = jnp.broadcast_to(
+        jax.random.normal(jax.random.key(1), (1, cfg.model.hidden)), (5, cfg.model.hidden)
+    )
     cls = jnp.zeros((5,), jnp.int32)
-    net = SceneGenNet(cfg)
-    box, heading, velocity = net.apply({"params": params}, feat, cls, jnp.asarray(map_feat),
-                                       method=SceneGenNet.attributes)
-    base = net.apply({"params": params}, feat, cls, jnp.zeros_like(map_feat),
-                     method=SceneGenNet.attributes)
+    net = SceneGenNet(cfg.model)
+    box, heading, velocity = net.apply(
+        {"params": params}, feat, cls, jnp.asarray(map_feat), method=SceneGenNet.attributes
+    )
+    base = net.apply(
+        {"params": params}, feat, cls, jnp.zeros_like(map_feat), method=SceneGenNet.attributes
+    )
     np.testing.assert_array_equal(box, base[0])
     np.testing.assert_array_equal(velocity, base[2])
     unturned = split_heading(base[1][0])
@@ -294,7 +313,11 @@ def test_heading_lane_frame_turns_the_heading_mixture_by_the_nearest_lane_at_the
     kappa = np.exp(np.asarray(unturned.log_kappa))
     h = np.linspace(-np.pi, np.pi, 7)
     for n, turn in enumerate(np.where(length >= 0.5, a, 0.0)):
-        want = np.log(sum(wk * stats.vonmises.pdf(h - turn, kk, loc=mk)
-                          for wk, kk, mk in zip(w, kappa, mu, strict=True)))
+        want = np.log(
+            sum(
+                wk * stats.vonmises.pdf(h - turn, kk, loc=mk)
+                for wk, kk, mk in zip(w, kappa, mu, strict=True)
+            )
+        )
         got = [float(heading_log_prob(heading[n], jnp.float32(x))) for x in h]
         np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4)

@@ -45,8 +45,8 @@ def _polygon(center, size, heading) -> shapely.Polygon:
 
 
 def _pixel_boxes(cfg) -> np.ndarray:
-    c = pixel_centers(cfg).astype(np.float64)
-    h = cfg.m_per_px / 2
+    c = pixel_centers(cfg.grid).astype(np.float64)
+    h = cfg.grid.m_per_px / 2
     return shapely.box(c[..., 0] - h, c[..., 1] - h, c[..., 0] + h, c[..., 1] + h)
 
 
@@ -62,7 +62,7 @@ def _actor(cls, position, size, heading, velocity, valid=True) -> Actors:
 
 
 def _random_actors(rng: np.random.Generator, n: int, cfg, n_valid: int) -> Actors:
-    half = cfg.region_m / 2
+    half = cfg.grid.region_m / 2
     return Actors(
         cls=jnp.asarray(rng.integers(0, 3, n), jnp.int32),
         position=jnp.asarray(rng.uniform(-half, half, (n, 2)), jnp.float32),
@@ -89,33 +89,33 @@ BOXES = [
 def test_box_coverage_matches_shapely(grid_size, m_per_px, center, size, heading_deg):
     cfg = _cfg(grid_size, m_per_px)
     heading = np.deg2rad(heading_deg)
-    cov = np.asarray(box_coverage(jnp.asarray(center), jnp.asarray(size), heading, cfg))
+    cov = np.asarray(box_coverage(jnp.asarray(center), jnp.asarray(size), heading, cfg.grid))
     assert cov.shape == (grid_size, grid_size) and cov.dtype == np.float32
     assert cov.min() >= 0.0 and cov.max() <= 1.0 + 1e-6
 
     poly = _polygon(center, size, heading)
-    region = shapely.box(*(2 * [-cfg.region_m / 2]), *(2 * [cfg.region_m / 2]))
+    region = shapely.box(*(2 * [-cfg.grid.region_m / 2]), *(2 * [cfg.grid.region_m / 2]))
     area = shapely.intersection(poly, region).area
-    np.testing.assert_allclose(cov.sum() * cfg.bin_area, area, rtol=0.05)
+    np.testing.assert_allclose(cov.sum() * cfg.grid.bin_area, area, rtol=0.05)
 
     pixels = _pixel_boxes(cfg)
     inside = shapely.contains_properly(poly, pixels)
     outside = ~shapely.intersects(poly, pixels)
-    centers = pixel_centers(cfg)
+    centers = pixel_centers(cfg.grid)
     centre_in = shapely.contains_xy(poly, centers[..., 0], centers[..., 1])
     assert np.all(centre_in[inside]) and not np.any(centre_in[outside])
     assert np.all(cov[inside] > 0.999)
     assert np.all(cov[outside] < 1e-3)
     # Partially covered pixels: coverage close to the exact area fraction.
-    exact = shapely.area(shapely.intersection(pixels, poly)) / cfg.bin_area
+    exact = shapely.area(shapely.intersection(pixels, poly)) / cfg.grid.bin_area
     np.testing.assert_allclose(cov, exact, atol=0.03)
 
 
 def test_window_equals_full_grid():
     cfg = _cfg(128, 0.25)
     for center, size, heading in [((1.0, -2.0), (2.2, 9.0), 0.7), ((-15.9, 15.8), (1.9, 4.5), 2.0)]:
-        args = (jnp.asarray(center), jnp.asarray(size), heading, cfg)
-        assert window_size(cfg) < cfg.grid_size
+        args = (jnp.asarray(center), jnp.asarray(size), heading, cfg.grid)
+        assert window_size(cfg.grid) < cfg.grid.grid_size
         windowed = box_coverage(*args)
         full = box_coverage(*args, max_box_m=1e6)
         np.testing.assert_allclose(windowed, full, atol=1e-6)
@@ -127,9 +127,10 @@ def test_pedestrian_nominal_footprint(grid_size, m_per_px):
     cfg = _cfg(grid_size, m_per_px)
     # Size and heading of a pedestrian are ignored.
     ped = _actor(PEDESTRIAN, (1.3, -0.7), (5.0, 9.0), 1.0, (1.0, 0.5))
-    raster = draw_actor(empty_actor_raster(cfg), ped, False, cfg)
+    raster = draw_actor(empty_actor_raster(cfg.grid), ped, False, cfg.grid)
     occ = np.asarray(raster[..., CH["occ_pedestrian"]])
-    np.testing.assert_allclose(occ.sum() * cfg.bin_area, cfg.pedestrian_size_m**2, rtol=0.05)
+    np.testing.assert_allclose(occ.sum() * cfg.grid.bin_area, cfg.grid.pedestrian_size_m**2,
+                               rtol=0.05)
     for name in ("occ_ego", "occ_vehicle", "occ_bicyclist", "heading_cos", "heading_sin"):
         assert float(jnp.abs(raster[..., CH[name]]).max()) == 0.0, name
 
@@ -139,8 +140,8 @@ def test_motion_channels_at_centre(cls, channel):
     cfg = _cfg(64, 1.0)
     heading, velocity = 2.4, (-3.0, 4.0)
     actor = _actor(cls, (5.5, 8.5), (2.0, 4.0), heading, velocity)
-    raster = draw_actor(empty_actor_raster(cfg), actor, False, cfg)
-    row, col = (int(i) for i in pixel_of(actor.position, cfg))
+    raster = draw_actor(empty_actor_raster(cfg.grid), actor, False, cfg.grid)
+    row, col = (int(i) for i in pixel_of(actor.position, cfg.grid))
     px = np.asarray(raster[row, col])
     assert px[CH[channel]] == pytest.approx(1.0)
     np.testing.assert_allclose(
@@ -156,11 +157,13 @@ def test_motion_channels_at_centre(cls, channel):
 
 def test_ego_channel_and_stationary_direction():
     cfg = _cfg(32, 2.5)
-    ego = make_ego(cfg.ego_size_m, velocity=(0.1, 0.0))  # below cfg.zero_speed: direction undefined
-    raster = draw_actor(empty_actor_raster(cfg), ego, True, cfg)
-    centre = np.asarray(raster[cfg.grid_size // 2, cfg.grid_size // 2])
-    assert float(raster[..., CH["occ_ego"]].sum() * cfg.bin_area) == pytest.approx(
-        cfg.ego_size_m[0] * cfg.ego_size_m[1], rel=0.05
+    ego = make_ego(
+        cfg.grid.ego_size_m, velocity=(0.1, 0.0)
+    )  # below cfg.grid.zero_speed: direction undefined
+    raster = draw_actor(empty_actor_raster(cfg.grid), ego, True, cfg.grid)
+    centre = np.asarray(raster[cfg.grid.grid_size // 2, cfg.grid.grid_size // 2])
+    assert float(raster[..., CH["occ_ego"]].sum() * cfg.grid.bin_area) == pytest.approx(
+        cfg.grid.ego_size_m[0] * cfg.grid.ego_size_m[1], rel=0.05
     )
     assert float(raster[..., CH["occ_vehicle"]].max()) == 0.0
     assert centre[CH["vel_cos"]] == 0.0 and centre[CH["vel_sin"]] == 0.0
@@ -170,11 +173,14 @@ def test_ego_channel_and_stationary_direction():
 def test_invalid_actor_leaves_raster_unchanged():
     cfg = _cfg(32, 2.5)
     base = rasterize_actors(
-        _random_actors(np.random.default_rng(0), 5, cfg, 5), make_ego(cfg.ego_size_m), cfg, 5
+        _random_actors(np.random.default_rng(0), 5, cfg, 5),
+        make_ego(cfg.grid.ego_size_m),
+        cfg.grid,
+        5,
     )
     actor = _actor(VEHICLE, (0.0, 0.0), (2.0, 5.0), 0.3, (2.0, 1.0), valid=False)
-    np.testing.assert_array_equal(draw_actor(base, actor, False, cfg), base)
-    drawn = draw_actor(base, actor.replace(valid=jnp.bool_(True)), False, cfg)
+    np.testing.assert_array_equal(draw_actor(base, actor, False, cfg.grid), base)
+    drawn = draw_actor(base, actor.replace(valid=jnp.bool_(True)), False, cfg.grid)
     assert not np.array_equal(drawn, base)  # the same actor, valid, does draw
 
 
@@ -182,24 +188,26 @@ def test_occupancy_is_max_and_motion_overwrites():
     cfg = _cfg(64, 1.0)
     a = _actor(VEHICLE, (0.5, 0.5), (2.0, 6.0), 0.0, (3.0, 0.0))
     b = _actor(VEHICLE, (0.5, 0.5), (2.0, 6.0), np.pi / 2, (0.0, 7.0))
-    raster = draw_actor(draw_actor(empty_actor_raster(cfg), a, False, cfg), b, False, cfg)
-    row, col = (int(i) for i in pixel_of(a.position, cfg))
+    raster = draw_actor(
+        draw_actor(empty_actor_raster(cfg.grid), a, False, cfg.grid), b, False, cfg.grid
+    )
+    row, col = (int(i) for i in pixel_of(a.position, cfg.grid))
     assert float(raster[row, col, CH["occ_vehicle"]]) == pytest.approx(1.0)
     assert float(raster[row, col, CH["speed"]]) == pytest.approx(7.0)
     union = _polygon((0.5, 0.5), (2.0, 6.0), 0.0).union(_polygon((0.5, 0.5), (2.0, 6.0), np.pi / 2))
-    area = float(raster[..., CH["occ_vehicle"]].sum()) * cfg.bin_area
+    area = float(raster[..., CH["occ_vehicle"]].sum()) * cfg.grid.bin_area
     assert area == pytest.approx(union.area, rel=0.05)
 
 
 def test_upto_counts_and_jit_matches_eager():
     cfg = _cfg(32, 2.5)
     actors = _random_actors(np.random.default_rng(1), 6, cfg, 4)
-    ego = make_ego(cfg.ego_size_m, velocity=(3.0, 0.0))
-    eager = rasterize_actors(actors, ego, cfg, 3)
-    jitted = jax.jit(functools.partial(rasterize_actors, cfg=cfg))
+    ego = make_ego(cfg.grid.ego_size_m, velocity=(3.0, 0.0))
+    eager = rasterize_actors(actors, ego, cfg.grid, 3)
+    jitted = jax.jit(functools.partial(rasterize_actors, grid=cfg.grid))
     np.testing.assert_allclose(jitted(actors, ego, upto=jnp.int32(3)), eager, atol=1e-6)
     # Drawing more actors adds occupancy; invalid slots (index >= 4) add nothing.
-    occ = [float(rasterize_actors(actors, ego, cfg, k)[..., 1:4].sum()) for k in range(7)]
+    occ = [float(rasterize_actors(actors, ego, cfg.grid, k)[..., 1:4].sum()) for k in range(7)]
     assert occ[0] == 0.0 and all(occ[k + 1] > occ[k] for k in range(3))
     assert occ[4] == occ[5] == occ[6]
 
@@ -210,15 +218,15 @@ def test_vmap_over_batch():
     batch = [_random_actors(rng, 5, cfg, v) for v in (5, 2, 0)]
     stacked = jax.tree.map(lambda *x: jnp.stack(x), *batch)
     egos = jax.tree.map(
-        lambda *x: jnp.stack(x), *[make_ego(cfg.ego_size_m, (float(i), 0.0)) for i in range(3)]
+        lambda *x: jnp.stack(x), *[make_ego(cfg.grid.ego_size_m, (float(i), 0.0)) for i in range(3)]
     )
     upto = jnp.array([5, 1, 3], jnp.int32)
-    fn = jax.jit(jax.vmap(functools.partial(rasterize_actors, cfg=cfg)))
+    fn = jax.jit(jax.vmap(functools.partial(rasterize_actors, grid=cfg.grid)))
     out = fn(stacked, egos, upto=upto)
     assert out.shape == (3, 32, 32, 9)
     for b in range(3):
         ego = jax.tree.map(lambda x, b=b: x[b], egos)
-        ref = rasterize_actors(batch[b], ego, cfg, int(upto[b]))
+        ref = rasterize_actors(batch[b], ego, cfg.grid, int(upto[b]))
         np.testing.assert_allclose(out[b], ref, atol=1e-6)
 
 
@@ -226,10 +234,10 @@ def test_sequence_matches_rasterize():
     cfg = _cfg(32, 2.5)
     n = 6
     actors = _random_actors(np.random.default_rng(3), n, cfg, 5)
-    ego = make_ego(cfg.ego_size_m, velocity=(2.0, 1.0))
-    seq = jax.jit(functools.partial(actor_rasters_sequence, cfg=cfg))(actors, ego)
+    ego = make_ego(cfg.grid.ego_size_m, velocity=(2.0, 1.0))
+    seq = jax.jit(functools.partial(actor_rasters_sequence, grid=cfg.grid))(actors, ego)
     assert seq.shape == (n + 1, 32, 32, 9)
     for i in range(n + 1):
-        np.testing.assert_allclose(seq[i], rasterize_actors(actors, ego, cfg, i), atol=1e-6)
+        np.testing.assert_allclose(seq[i], rasterize_actors(actors, ego, cfg.grid, i), atol=1e-6)
     assert not np.array_equal(seq[0], seq[1])
     np.testing.assert_array_equal(seq[5], seq[6])  # slot 5 is invalid

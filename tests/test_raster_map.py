@@ -93,7 +93,7 @@ def test_nearest_lane_points_along_the_nearest_centreline_up_to_its_range():
                  right=np.stack([np.full(5, 21.8), ys], 1))
     size, res = 160, 1.0
     r = rasterize_map(VectorMap(lanes=(east, north)), size, res)
-    xy = pixel_centers(get_config("tiny").replace(grid_size=size, m_per_px=res))
+    xy = pixel_centers(get_config("tiny").replace(grid_size=size, m_per_px=res).grid)
     x, y = xy[..., 0], xy[..., 1]
     # Distance to each centreline (segments from x = -40 to 10 at y = 0; x = 20, |y| <= 40).
     d_east = np.hypot(x - np.clip(x, -40, 10), y)
@@ -162,7 +162,7 @@ def test_nearest_lane_is_the_direction_of_a_nearest_segment_on_real_maps(
     lines = [lane.centerline for lane in frame.map.lanes]
     a = np.concatenate([line[:-1] for line in lines])
     b = np.concatenate([line[1:] for line in lines])
-    xy = pixel_centers(get_config("tiny").replace(grid_size=size, m_per_px=res))
+    xy = pixel_centers(get_config("tiny").replace(grid_size=size, m_per_px=res).grid)
     xy = xy.reshape(-1, 1, 2).astype(np.float64)
     d = b - a
     length = np.linalg.norm(d, axis=1)
@@ -181,15 +181,17 @@ def test_nearest_lane_is_the_direction_of_a_nearest_segment_on_real_maps(
 def test_rotated_vector_map_matches_rotated_canvas(all_frames):
     cfg = get_config("cpu", map_layers=ALL_LAYER_GROUPS)
     frame = all_frames["val"][0][40]
-    canvas = rasterize_map(frame.map, cfg.canvas_size, cfg.m_per_px)
+    canvas = rasterize_map(frame.map, cfg.grid.canvas_size, cfg.grid.m_per_px)
     theta = np.deg2rad(37.0)
     direct = select_channels(
         rasterize_map(
-            frame.map.transform(rotation_matrix(theta), np.zeros(2)), cfg.grid_size, cfg.m_per_px
+            frame.map.transform(rotation_matrix(theta), np.zeros(2)),
+            cfg.grid.grid_size,
+            cfg.grid.m_per_px,
         ),
-        cfg,
+        cfg.grid,
     )
-    cropped = np.asarray(crop_map(canvas, theta, cfg))
+    cropped = np.asarray(crop_map(canvas, theta, cfg.grid))
     d = CH["drivable_area"]
     agree = np.mean((cropped[..., d] > 0.5) == (direct[..., d] > 0.5))
     assert agree > 0.97
@@ -207,13 +209,13 @@ def test_rotated_vector_map_matches_rotated_canvas(all_frames):
 
 def test_vehicles_keep_their_map_values_under_rotation(tiny_train_cache):
     cfg = get_config("tiny")
-    d = cfg.map_channels.index("drivable_area")
+    d = cfg.grid.map_channels.index("drivable_area")
     checked = 0
     for index in range(0, len(tiny_train_cache), 7):
         canvas, actors, ego = cached_scene(tiny_train_cache, index, cfg)
-        m0, s0, _ = scene_from_cached(canvas, actors, ego, 0.0, cfg)
+        m0, s0, _ = scene_from_cached(canvas, actors, ego, 0.0, cfg.grid)
         theta = 1.1
-        m1, s1, _ = scene_from_cached(canvas, actors, ego, theta, cfg)
+        m1, s1, _ = scene_from_cached(canvas, actors, ego, theta, cfg.grid)
         m0, m1 = np.asarray(m0)[..., d], np.asarray(m1)[..., d]
         # Match actors through their rotated positions.
         p0 = np.asarray(s0.actors.position)[np.asarray(s0.actors.valid)]
@@ -226,8 +228,8 @@ def test_vehicles_keep_their_map_values_under_rotation(tiny_train_cache):
             q = np.array([c * p[0] - s * p[1], s * p[0] + c * p[1]])
             if not np.any(np.linalg.norm(p1 - q, axis=1) < 1e-3):
                 continue  # rotated out of the region
-            r0, col0 = (int(v) for v in pixel_of(p, cfg))
-            r1, col1 = (int(v) for v in pixel_of(q, cfg))
+            r0, col0 = (int(v) for v in pixel_of(p, cfg.grid))
+            r1, col1 = (int(v) for v in pixel_of(q, cfg.grid))
             window = m0[max(r0 - 1, 0) : r0 + 2, max(col0 - 1, 0) : col0 + 2]
             assert window.min() - 1e-3 <= m1[r1, col1] <= window.max() + 1e-3
             checked += 1
@@ -237,6 +239,8 @@ def test_vehicles_keep_their_map_values_under_rotation(tiny_train_cache):
 def test_crop_at_zero_rotation_is_exact_centre(tiny_train_cache):
     cfg = get_config("tiny")
     canvas, _, _ = cached_scene(tiny_train_cache, 3, cfg)
-    off = (cfg.canvas_size - cfg.grid_size) // 2
-    expected = select_channels(canvas[off : off + cfg.grid_size, off : off + cfg.grid_size], cfg)
-    np.testing.assert_allclose(np.asarray(crop_map(canvas, 0.0, cfg)), expected, atol=1e-6)
+    off = (cfg.grid.canvas_size - cfg.grid.grid_size) // 2
+    expected = select_channels(
+        canvas[off : off + cfg.grid.grid_size, off : off + cfg.grid.grid_size], cfg.grid
+    )
+    np.testing.assert_allclose(np.asarray(crop_map(canvas, 0.0, cfg.grid)), expected, atol=1e-6)

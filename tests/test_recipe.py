@@ -59,7 +59,7 @@ def test_tiny_recipe_end_to_end(tmp_path, data_root):
     base = flatten_dict(load_params(os.path.join(workdir, "map", "base"))[1], sep="/")
     cfg_box, box, step = load_params(os.path.join(workdir, "map", "box"))
     box = flatten_dict(box, sep="/")
-    assert step == 2 and cfg_box.train_params == BOX_MLP
+    assert step == 2 and cfg_box.train.train_params == BOX_MLP
     # The box phase starts from the base phase and moves only the box MLP.
     moved = {k for k in base if not np.array_equal(base[k], box[k])}
     assert moved and {k.split("/")[0] for k in moved} <= set(BOX_MLP)

@@ -71,7 +71,7 @@ def test_sample_attributes_keeps_the_most_likely_of_m_proposals():
             for n in (box_params_size(K), heading_params_size(K), velocity_params_size(K))]
     keys = jax.random.split(jax.random.key(0), r)
     fn = jax.jit(sample_attributes, static_argnames=("cfg", "proposals"))
-    size, head, vel = map(np.asarray, fn(keys, *raws, cls, cfg=TINY, proposals=m))
+    size, head, vel = map(np.asarray, fn(keys, *raws, cls, cfg=TINY.model, proposals=m))
 
     @jax.jit
     def reference(keys, box, heading, velocity, relative):
@@ -85,7 +85,7 @@ def test_sample_attributes_keeps_the_most_likely_of_m_proposals():
             head = best(ks[1 : 1 + m], sample_heading, heading_log_prob, h)
             # Velocity: the first proposal decides standing vs moving; a moving actor keeps
             # its best moving proposal.
-            zero = TINY.zero_speed
+            zero = TINY.grid.zero_speed
             vels = jax.vmap(lambda kk: sample_velocity(kk, v, head, rel, zero))(ks[1 + m :])
             moving = jnp.hypot(vels[:, 0], vels[:, 1]) > zero
             score = jax.vmap(lambda x: velocity_proposal_score(v, x, head, rel, zero))(vels)
@@ -100,8 +100,8 @@ def test_sample_attributes_keeps_the_most_likely_of_m_proposals():
     np.testing.assert_allclose(head[:2], want[1][:2], rtol=1e-6)
     np.testing.assert_allclose(vel, want[2], rtol=1e-5, atol=1e-6)
     # The pedestrian: nominal footprint, heading = walking direction (0 when standing).
-    np.testing.assert_allclose(size[2], [TINY.pedestrian_size_m] * 2)
-    walking = np.hypot(*vel[2]) > TINY.zero_speed
+    np.testing.assert_allclose(size[2], [TINY.grid.pedestrian_size_m] * 2)
+    walking = np.hypot(*vel[2]) > TINY.grid.zero_speed
     expect = math.atan2(vel[2, 1], vel[2, 0]) % (2 * math.pi) if walking else 0.0
     np.testing.assert_allclose(head[2], expect, atol=1e-5)
     # Extreme raw outputs still give clamped, finite attributes.
@@ -117,7 +117,7 @@ def test_best_of_m_keeps_standing_share_and_mixture_modes():
     """Best-of-M (M = 10) keeps P(standing) = pi_0 and picks speeds near the mixture's mode in
     its own coordinates: with the planar density the 1 / s^2 Jacobian made the slowest speed
     win. The box, one draw, has the median of its log-normal."""
-    k = TINY.num_mixtures
+    k = TINY.model.num_mixtures
     n, m = 4000, 10
     box = np.full(box_params_size(k), -30.0, np.float32)  # one component (others' logits -30)
     box[0] = 0.0
@@ -135,9 +135,9 @@ def test_best_of_m_keeps_standing_share_and_mixture_modes():
     cls = jnp.full((n,), VEHICLE, jnp.int32)
     fn = jax.jit(sample_attributes, static_argnames=("cfg", "proposals"))
     size, _, v = map(np.asarray, fn(jax.random.split(jax.random.key(3), n), *raws, cls,
-                                    cfg=TINY, proposals=m))
+                                    cfg=TINY.model, proposals=m))
     speed = np.hypot(*v.T)
-    standing = speed <= TINY.zero_speed
+    standing = speed <= TINY.grid.zero_speed
     assert abs(standing.mean() - 0.5) < 0.04
     # Best of 10 draws from LN(log 10, 0.5) lies near the mode of log speed: median ~10 m/s.
     assert abs(np.median(speed[~standing]) / 10.0 - 1.0) < 0.05

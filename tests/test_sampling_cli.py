@@ -61,12 +61,14 @@ def test_cli_sample_end_to_end(tmp_path, val_cache, monkeypatch):
         for rec in r["actors"]:
             assert all(math.isfinite(rec[k]) for k in ("x", "y", "width", "length", "heading",
                                                         "vx", "vy"))
-            assert abs(rec["x"]) < TINY.region_m / 2 and abs(rec["y"]) <= TINY.region_m / 2
+            assert (
+                abs(rec["x"]) < TINY.grid.region_m / 2 and abs(rec["y"]) <= TINY.grid.region_m / 2
+            )
     for r in rows:
         assert (out / "png" / f"{r['scene']}.png").stat().st_size > 1000
         assert (out / "heatmaps" / f"{r['scene']}.png").stat().st_size > 1000
         scenario = read_scenario(out / "scenarionet" / f"sd_scenegen_{r['scene']}.pkl")
-        (frame, _), = frames_from_scenario(scenario, "test")
+        ((frame, _),) = frames_from_scenario(scenario, "test")
         assert frame.num_actors == len(r["actors"])
         got = sorted(map(tuple, frame.position.round(3)))
         want = sorted((round(a["x"], 3), round(a["y"], 3)) for a in r["actors"])
@@ -82,16 +84,35 @@ def test_cli_sample_end_to_end(tmp_path, val_cache, monkeypatch):
     # Given boxes that overlap the ego of a cache scene exit 2 naming the line and the actor;
     # --allow-overlap keeps them.
     overlapping = tmp_path / "overlapping.jsonl"
-    overlapping.write_text("\n" + json.dumps({"actors": [
-        {"class": "vehicle", "x": 3.0, "y": 0.5, "width": 2.0, "length": 4.6, "heading": 0.1,
-         "vx": 0.0, "vy": 0.0}]}) + "\n")
+    overlapping.write_text(
+        "\n"
+        + json.dumps(
+            {
+                "actors": [
+                    {
+                        "class": "vehicle",
+                        "x": 3.0,
+                        "y": 0.5,
+                        "width": 2.0,
+                        "length": 4.6,
+                        "heading": 0.1,
+                        "vx": 0.0,
+                        "vy": 0.0,
+                    }
+                ]
+            }
+        )
+        + "\n"
+    )
     bad = argv[:8] + [str(tmp_path / "bad")] + argv[9:-1] + [str(overlapping)]
     with pytest.raises(SystemExit) as exit_info:
         main(bad)
     assert exit_info.value.code == 2
-    assert re.match(rf"{re.escape(str(overlapping))}:2: actors\[0\] \(vehicle at x=3 m, y=0.5 m\) "
-                    r"overlaps the ego \(width 1.95 m, length 4.88 m",
-                    str(exit_info.value.__cause__))
+    assert re.match(
+        rf"{re.escape(str(overlapping))}:2: actors\[0\] \(vehicle at x=3 m, y=0.5 m\) "
+        r"overlaps the ego \(width 1.95 m, length 4.88 m",
+        str(exit_info.value.__cause__),
+    )
     main(bad + ["--allow-overlap"])
     rows = [json.loads(line) for line in (tmp_path / "bad" / "scenes.jsonl").open()]
     assert [(r["num_given"], r["actors"][0]["x"]) for r in rows] == [(1, pytest.approx(3.0))] * 2
@@ -117,21 +138,32 @@ def test_cli_sample_end_to_end(tmp_path, val_cache, monkeypatch):
 
 
 def _vehicle(x, y, heading=0.0, width=2.0, length=4.0, cls="vehicle"):
-    return {"class": cls, "x": x, "y": y, "width": width, "length": length, "heading": heading,
-            "vx": 0.0, "vy": 0.0}
+    return {
+        "class": cls,
+        "x": x,
+        "y": y,
+        "width": width,
+        "length": length,
+        "heading": heading,
+        "vx": 0.0,
+        "vy": 0.0,
+    }
 
 
 def test_given_values_must_be_finite_numbers():
-    for key, value, message in [("x", True, r"not a number \(True\)"),
-                                ("y", "5", r"not a number \('5'\)"),
-                                ("vx", False, r"not a number \(False\)"),
-                                ("width", [2.0], r"not a number"),
-                                ("heading", float("inf"), "NaN or inf"),
-                                ("vy", float("nan"), "NaN or inf"),
-                                ("length", 10**400, "out of range")]:
+    for key, value, message in [
+        ("x", True, r"not a number \(True\)"),
+        ("y", "5", r"not a number \('5'\)"),
+        ("vx", False, r"not a number \(False\)"),
+        ("width", [2.0], r"not a number"),
+        ("heading", float("inf"), "NaN or inf"),
+        ("vy", float("nan"), "NaN or inf"),
+        ("length", 10**400, "out of range"),
+    ]:
         with pytest.raises(ValueError, match=rf"^f\.jsonl:3: actors\[1\]\.{key}: {message}"):
-            actors_from_records([_vehicle(20.0, 5.0), {**_vehicle(10.0, -5.0), key: value}],
-                                TINY, "f.jsonl:3")
+            actors_from_records(
+                [_vehicle(20.0, 5.0), {**_vehicle(10.0, -5.0), key: value}], TINY, "f.jsonl:3"
+            )
     # JSON's NaN and Infinity literals are read by json.loads and refused the same way.
     row = json.loads('{"class": "pedestrian", "x": 1.0, "y": Infinity, "vx": 0, "vy": 0}')
     with pytest.raises(ValueError, match=r"actors\[0\]\.y: NaN or inf"):
@@ -141,24 +173,36 @@ def test_given_values_must_be_finite_numbers():
 def test_given_overlaps_are_refused_unless_allowed():
     ego = np.array([[2.0, 4.0]])  # width, length m; at the origin, heading 0
     pair = [_vehicle(20.0, 5.0), _vehicle(10.0, 5.0), _vehicle(12.0, 6.5, heading=0.3)]
-    with pytest.raises(ValueError, match=r"^f\.jsonl:2: actors\[1\] \(vehicle at x=10 m, "
-                       r"y=5 m\) and actors\[2\] \(vehicle at x=12 m, y=6\.5 m\) overlap; "
-                       r"pass --allow-overlap"):
+    with pytest.raises(
+        ValueError,
+        match=r"^f\.jsonl:2: actors\[1\] \(vehicle at x=10 m, "
+        r"y=5 m\) and actors\[2\] \(vehicle at x=12 m, y=6\.5 m\) overlap; "
+        r"pass --allow-overlap",
+    ):
         actors_from_records(pair, TINY, "f.jsonl:2", ego)
     on_ego = [_vehicle(-20.0, 5.0), _vehicle(1.5, 1.2, width=0.7, length=1.8, cls="bicyclist")]
-    with pytest.raises(ValueError, match=r"^f\.jsonl:2: actors\[1\] \(bicyclist at x=1\.5 m, "
-                       r"y=1\.2 m\) overlaps the ego \(width 2 m, length 4 m at the origin\)"):
+    with pytest.raises(
+        ValueError,
+        match=r"^f\.jsonl:2: actors\[1\] \(bicyclist at x=1\.5 m, "
+        r"y=1\.2 m\) overlaps the ego \(width 2 m, length 4 m at the origin\)",
+    ):
         actors_from_records(on_ego, TINY, "f.jsonl:2", ego)
     for records in (pair, on_ego):  # allowed: kept unchanged
         kept = actors_from_records(records, TINY, "f.jsonl:2", ego, allow_overlap=True)
         assert sorted(r["x"] for r in actor_records(kept)) == sorted(r["x"] for r in records)
     # Touching is not overlapping; pedestrians are points (as in collision rejection); each
     # ego size given is checked (a longer ego reaches the vehicle ahead).
-    ahead = [_vehicle(4.0, 0.0), _vehicle(0.0, 3.5, heading=math.pi / 2),
-             {"class": "pedestrian", "x": 0.2, "y": 0.0, "vx": 0.0, "vy": 0.0}]
+    ahead = [
+        _vehicle(4.0, 0.0),
+        _vehicle(0.0, 3.5, heading=math.pi / 2),
+        {"class": "pedestrian", "x": 0.2, "y": 0.0, "vx": 0.0, "vy": 0.0},
+    ]
     assert int(actors_from_records(ahead, TINY, "f", ego).valid.sum()) == 3
-    with pytest.raises(ValueError, match=r"actors\[0\] .* overlaps the ego \(width 2 m, "
-                       r"length 6 m"):
+    with pytest.raises(
+        ValueError,
+        match=r"actors\[0\] .* overlaps the ego \(width 2 m, "
+        r"length 6 m",
+    ):
         actors_from_records(ahead, TINY, "f", np.array([[2.0, 4.0], [2.0, 6.0]]))
 
 
@@ -169,8 +213,11 @@ def test_given_lines_are_checked_against_the_egos_they_meet():
     ahead = json.dumps({"actors": [_vehicle(6.0, 0.0)]})  # x in [4, 8] m
     lines = [ahead, "", ahead]
     egos = np.array([[2.0, 4.0], [2.0, 10.0], [2.0, 4.0]])  # scenes 0, 1, 2: lines 1, 3, 1
-    with pytest.raises(ValueError, match=r"^given.jsonl:3: actors\[0\] .* overlaps "
-                       r"the ego \(width 2 m, length 10 m"):
+    with pytest.raises(
+        ValueError,
+        match=r"^given.jsonl:3: actors\[0\] .* overlaps "
+        r"the ego \(width 2 m, length 10 m",
+    ):
         given_from_lines(lines, "given.jsonl", TINY, egos)
     assert len(given_from_lines(lines, "given.jsonl", TINY, egos[[0, 2, 0]])) == 2
     assert len(given_from_lines(lines, "given.jsonl", TINY, egos, allow_overlap=True)) == 2
@@ -184,15 +231,46 @@ def test_given_records_are_validated():
     with pytest.raises(ValueError, match=r"^f\.jsonl:1: actors\[0\]\.class: 'truck' is not"):
         actors_from_records([{"class": "truck", "x": 0, "y": 0}], TINY, "f.jsonl:1")
     ok = {"class": "pedestrian", "x": 0, "y": 0, "vx": 0, "vy": 0}
-    with pytest.raises(ValueError, match=r"^f\.jsonl:1: actors\[1\]\.x/y: \(40, 0\) m lies "
-                       r"outside the 80 m region"):  # the region is [-40, 40) m
+    with pytest.raises(
+        ValueError,
+        match=r"^f\.jsonl:1: actors\[1\]\.x/y: \(40, 0\) m lies "
+        r"outside the 80 m region",
+    ):  # the region is [-40, 40) m
         actors_from_records([ok, {**ok, "x": 40.0}], TINY, "f.jsonl:1")
     with pytest.raises(ValueError, match=r"^f\.jsonl:1: actors\[0\]\.width/length: box sizes"):
-        actors_from_records([{"class": "vehicle", "x": 1, "y": 1, "width": 0, "length": 4,
-                              "heading": 0, "vx": 0, "vy": 0}], TINY, "f.jsonl:1")
+        actors_from_records(
+            [
+                {
+                    "class": "vehicle",
+                    "x": 1,
+                    "y": 1,
+                    "width": 0,
+                    "length": 4,
+                    "heading": 0,
+                    "vx": 0,
+                    "vy": 0,
+                }
+            ],
+            TINY,
+            "f.jsonl:1",
+        )
     with pytest.raises(ValueError, match=r"^f\.jsonl:1: actors\[0\]\.x: NaN or inf"):
-        actors_from_records([{"class": "vehicle", "x": float("nan"), "y": 1, "width": 2,
-                              "length": 4, "heading": 0, "vx": 0, "vy": 0}], TINY, "f.jsonl:1")
+        actors_from_records(
+            [
+                {
+                    "class": "vehicle",
+                    "x": float("nan"),
+                    "y": 1,
+                    "width": 2,
+                    "length": 4,
+                    "heading": 0,
+                    "vx": 0,
+                    "vy": 0,
+                }
+            ],
+            TINY,
+            "f.jsonl:1",
+        )
     with pytest.raises(ValueError, match=r"^f\.jsonl:1: actors\[0\]\.vx: out of range$"):
         actors_from_records([{**ok, "vx": 10**39}], TINY, "f.jsonl:1")  # float32 tops 3.4e38
     with pytest.raises(ValueError, match=r"^f\.jsonl:1: actors: 50 actors, more than max_actors"):

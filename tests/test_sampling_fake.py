@@ -75,7 +75,7 @@ class FakeModel:
         return state + 1, jnp.full((1, 1, 1, 1), state, jnp.float32)
 
     def features(self, params, h):
-        return jnp.broadcast_to(h, (1, self.cfg.grid_size, self.cfg.grid_size, 1))
+        return jnp.broadcast_to(h, (1, self.cfg.grid.grid_size, self.cfg.grid.grid_size, 1))
 
     def _t(self, f):
         return f[0, 0, 0, 0].astype(jnp.int32)
@@ -118,7 +118,7 @@ def velocity_raw_stationary():
 
 def fake_params(classes, loc_rows, box=None):
     """Class sequence (STOP ends) and per-step location logits [rows, H*W] (padded with 0)."""
-    n = FAKE_CFG.max_actors
+    n = FAKE_CFG.grid.max_actors
     cls = np.full((n, 4), NEG, np.float32)
     for t, c in enumerate(classes[:n]):
         if np.ndim(c):
@@ -148,11 +148,12 @@ FAKE_NUM = 16  # samples per fake run (one shape: one compile)
 def run_fake(params, given=None, caps=None, seed=0, location_temperature=1.0):
     """FAKE_NUM fake scenes on one empty map; returns the Sample with leading axis [FAKE_NUM]."""
     num = FAKE_NUM
-    maps = jnp.zeros((1, H, H, len(FAKE_CFG.map_channels)))
+    maps = jnp.zeros((1, H, H, len(FAKE_CFG.grid.map_channels)))
     g, c = batch_inputs(FAKE_CFG, 1, given, caps)
-    options = SamplerOptions(heatmap_steps=FAKE_STEPS, location_temperature=location_temperature)
+    options = SamplerOptions(heatmap_steps=FAKE_STEPS, location_temperature=location_temperature,
+                             proposals=FAKE_CFG.sample.proposals)
     out = sample_batch(scene_keys(jax.random.key(seed), 1, num), params, maps,
-                       broadcast(ego_of(FAKE_CFG), 1), g, c, cfg=FAKE_CFG, options=options,
+                       broadcast(ego_of(FAKE_CFG), 1), g, c, cfg=FAKE_CFG.model, options=options,
                        model=FakeModel(FAKE_CFG))
     return jax.tree.map(lambda x: np.asarray(x[0]), out)
 
@@ -171,12 +172,21 @@ def test_candidates_take_the_map_channels_at_their_own_bins(monkeypatch):
         return box[:, :2], heading[:, 0], velocity
 
     monkeypatch.setattr(placement, "sample_attributes", echo)
-    n, cm = FAKE_CFG.grid_size, len(FAKE_CFG.map_channels)
+    n, cm = FAKE_CFG.grid.grid_size, len(FAKE_CFG.grid.map_channels)
     map_raster = jnp.arange(n * n * cm, dtype=jnp.float32).reshape(1, n, n, cm)
     f = jnp.zeros((1, n, n, 1))
-    bins, cands = placement.draw_candidates(jax.random.key(0), {}, MapEcho(FAKE_CFG), f,
-                                            map_raster, VEHICLE, jnp.zeros((n * n,)), FAKE_CFG,
-                                            1, 16)
+    bins, cands = placement.draw_candidates(
+        jax.random.key(0),
+        {},
+        MapEcho(FAKE_CFG),
+        f,
+        map_raster,
+        VEHICLE,
+        jnp.zeros((n * n,)),
+        FAKE_CFG.model,
+        1,
+        16,
+    )
     bins = np.asarray(bins)
     assert len(set(bins.tolist())) > 8
     want = np.arange(n * n * cm, dtype=np.float32).reshape(n * n, cm)[bins]
@@ -185,21 +195,25 @@ def test_candidates_take_the_map_channels_at_their_own_bins(monkeypatch):
 
 
 def test_fake_model_insertion_order_classes_and_stop():
-    params = fake_params([VEHICLE, PEDESTRIAN, BICYCLIST],
-                         [peaked((70, 30.0)), peaked((300, 30.0)), peaked((301, 30.0))])
+    params = fake_params(
+        [VEHICLE, PEDESTRIAN, BICYCLIST],
+        [peaked((70, 30.0)), peaked((300, 30.0)), peaked((301, 30.0))],
+    )
     out = run_fake(params)
     a = out.actors
     np.testing.assert_array_equal(a.valid, np.tile([1, 1, 1, 0, 0, 0, 0, 0], (FAKE_NUM, 1)) > 0)
-    np.testing.assert_array_equal(a.cls[:, :3],
-                                  np.tile([VEHICLE, PEDESTRIAN, BICYCLIST], (FAKE_NUM, 1)))
-    np.testing.assert_array_equal(bins_of(a, FAKE_CFG)[:, :3],
-                                  np.tile([70, 300, 301], (FAKE_NUM, 1)))
+    np.testing.assert_array_equal(
+        a.cls[:, :3], np.tile([VEHICLE, PEDESTRIAN, BICYCLIST], (FAKE_NUM, 1))
+    )
+    np.testing.assert_array_equal(
+        bins_of(a, FAKE_CFG)[:, :3], np.tile([70, 300, 301], (FAKE_NUM, 1))
+    )
     np.testing.assert_array_equal(out.stop_reason, StopReason.STOP_TOKEN)
     np.testing.assert_array_equal(out.rejected, 0)
     # Nothing is written after the stop; attributes as the fake heads dictate.
     assert np.all(a.position[:, 3:] == 0) and np.all(a.size[:, 3:] == 0)
     np.testing.assert_allclose(a.size[:, 0], np.tile([1.0, 2.0], (FAKE_NUM, 1)), rtol=0.1)
-    np.testing.assert_allclose(a.size[:, 1], TINY.pedestrian_size_m)
+    np.testing.assert_allclose(a.size[:, 1], TINY.grid.pedestrian_size_m)
     np.testing.assert_array_equal(a.velocity[:, :3], 0.0)
     # Positions are uniform within the bins: different keys give different positions.
     assert len(np.unique(a.position[:, 0, 0])) == 16
@@ -214,11 +228,13 @@ def test_fake_model_ordering_mask_excludes_earlier_bins_and_no_bin_stops():
     # Step 1 prefers bin 100, which lies before the first actor's bin 500: masked out. Bin
     # 700 then holds all but 1e-6 of the mass (at logit 10 the 523 other allowed bins held
     # 2.3 %: 16 scenes all at 700 only 69 % of the time).
-    params = fake_params([VEHICLE, VEHICLE],
-                         [peaked((500, 30.0)), peaked((100, 30.0), (700, 20.0))])
+    params = fake_params(
+        [VEHICLE, VEHICLE], [peaked((500, 30.0)), peaked((100, 30.0), (700, 20.0))]
+    )
     out = run_fake(params)
-    np.testing.assert_array_equal(bins_of(out.actors, FAKE_CFG)[:, :2],
-                                  np.tile([500, 700], (FAKE_NUM, 1)))
+    np.testing.assert_array_equal(
+        bins_of(out.actors, FAKE_CFG)[:, :2], np.tile([500, 700], (FAKE_NUM, 1))
+    )
     assert np.all(out.heatmaps[:, 1, :500] == 0)
     # Step 1 allows only bins before 1000 (-inf elsewhere): no bin left, the scene stops.
     row = np.zeros(N_BINS, np.float32)
@@ -244,8 +260,9 @@ def test_location_temperature_divides_the_logits_before_the_masked_softmax():
         z = row[300:] / t
         want = np.zeros(N_BINS)
         want[300:] = np.exp(z - z.max()) / np.exp(z - z.max()).sum()
-        np.testing.assert_allclose(out.heatmaps[:, 1], np.tile(want, (FAKE_NUM, 1)),
-                                   rtol=1e-4, atol=1e-7)
+        np.testing.assert_allclose(
+            out.heatmaps[:, 1], np.tile(want, (FAKE_NUM, 1)), rtol=1e-4, atol=1e-7
+        )
     for bad in (0, -1.0, float("inf"), float("nan"), True, "1"):
         with pytest.raises(ValueError, match="location_temperature"):
             SamplerOptions(location_temperature=bad)
@@ -301,19 +318,36 @@ def test_fake_model_class_caps_and_given_actors():
     # Given actors: inserted first, unchanged; they count towards the caps; sampling goes on
     # after the last given bin.
     records = [
-        {"class": "bicyclist", "x": 10.3, "y": -14.0, "width": 0.7, "length": 1.8,
-         "heading": 1.0, "vx": 2.0, "vy": 1.0},
-        {"class": "vehicle", "x": -30.0, "y": 30.0, "width": 2.0, "length": 4.5,
-         "heading": 0.5, "vx": 0.0, "vy": 0.0},
+        {
+            "class": "bicyclist",
+            "x": 10.3,
+            "y": -14.0,
+            "width": 0.7,
+            "length": 1.8,
+            "heading": 1.0,
+            "vx": 2.0,
+            "vy": 1.0,
+        },
+        {
+            "class": "vehicle",
+            "x": -30.0,
+            "y": 30.0,
+            "width": 2.0,
+            "length": 4.5,
+            "heading": 0.5,
+            "vx": 0.0,
+            "vy": 0.0,
+        },
     ]
     given = actors_from_records(records, FAKE_CFG, "test")
     assert given.cls[0] == VEHICLE and int(given.valid.sum()) == 2  # sorted canonically
     out = run_fake(params, given=given, caps=np.array([2, 1, 8]))
     a = out.actors
     for field in ("cls", "position", "size", "heading", "velocity", "valid"):
-        np.testing.assert_array_equal(getattr(a, field)[:, :2],
-                                      np.broadcast_to(getattr(given, field)[:2],
-                                                      getattr(a, field)[:, :2].shape))
+        np.testing.assert_array_equal(
+            getattr(a, field)[:, :2],
+            np.broadcast_to(getattr(given, field)[:2], getattr(a, field)[:, :2].shape),
+        )
     np.testing.assert_array_equal(out.num_given, 2)
     np.testing.assert_array_equal(a.cls[:, 2:4], np.tile([VEHICLE, PEDESTRIAN], (FAKE_NUM, 1)))
     assert np.all(a.cls[:, 4:][a.valid[:, 4:]] == BICYCLIST)

@@ -78,7 +78,7 @@ def real_inputs(val_cache):
     maps, egos = [], []
     for i in (0, 4):
         canvas, _, ego = cached_scene(val_cache, i, TINY)
-        maps.append(np.asarray(crop(jnp.asarray(canvas), 0.0, TINY)))
+        maps.append(np.asarray(crop(jnp.asarray(canvas), 0.0, TINY.grid)))
         egos.append(jax.tree.map(np.asarray, ego))
     return params, np.stack(maps), jax.tree.map(lambda *x: np.stack(x), *egos)
 
@@ -97,9 +97,9 @@ def check_scene(actors: Actors, ego: Actors, cfg, caps=None):
         assert np.all(np.isfinite(getattr(actors, name))), name
     n = int(actors.valid.sum())
     assert np.all(actors.valid[:n]) and not np.any(actors.valid[n:])
-    Scene(actors=actors, ego=ego).validate(cfg, "sampled")  # region, canonical order, values
+    Scene(actors=actors, ego=ego).validate(cfg.grid, "sampled")  # region, canonical order, values
     pos = actors.position[:n]
-    assert np.all(np.asarray(in_region(jnp.asarray(pos), cfg)))
+    assert np.all(np.asarray(in_region(jnp.asarray(pos), cfg.grid)))
     assert np.all(np.diff(bins_of(actors, cfg)[:n]) >= 0)
     assert overlapping_pairs(actors, ego) == []
     boxed = actors.valid & (actors.cls != PEDESTRIAN)
@@ -150,7 +150,7 @@ def test_real_network_local_actor_gates_equal_full_grid(real_inputs):
     key = jax.random.key(5)
     local = run_real(params, maps, egos, key)
     full = jax.tree.map(np.asarray, sample_scenes(key, params, TINY, maps, egos, num_per_map=2,
-                                                  model=FullGridActorGates(TINY)))
+                                                  model=FullGridActorGates(TINY.model)))
     assert local.actors.valid.sum() >= 20
     np.testing.assert_array_equal(local.actors.cls, full.actors.cls)
     np.testing.assert_array_equal(local.actors.valid, full.actors.valid)
@@ -165,10 +165,10 @@ def test_real_network_given_actors_and_batch_equals_single_calls(real_inputs, va
 
     # Condition on the first three real actors (canonical order) of val scene 0.
     _, actors, _ = cached_scene(val_cache, 0, TINY)
-    actors = actors.replace(valid=actors.valid & np.asarray(in_region(actors.position, TINY)))
-    real = jax.tree.map(np.asarray, canonical_order(actors, TINY))
+    actors = actors.replace(valid=actors.valid & np.asarray(in_region(actors.position, TINY.grid)))
+    real = jax.tree.map(np.asarray, canonical_order(actors, TINY.grid))
     g = min(3, int(real.valid.sum()))
-    given = jax.tree.map(lambda x: x[: TINY.max_actors].copy(), real)
+    given = jax.tree.map(lambda x: x[: TINY.grid.max_actors].copy(), real)
     given.valid[g:] = False
     given = jax.tree.map(lambda x: x.astype(np.asarray(x).dtype), given)
     given_b = jax.tree.map(lambda x: np.stack([x, x]), given)
@@ -197,7 +197,9 @@ def test_real_network_given_actors_and_batch_equals_single_calls(real_inputs, va
     for b, s in itertools.product(range(2), range(2)):
         one = sample_batch(keys[b:b + 1, s:s + 1], params, maps[b:b + 1],
                            jax.tree.map(lambda x, b=b: x[b:b + 1], egos), given_one, caps_one,
-                           cfg=TINY, options=SamplerOptions(heatmap_steps=HEATMAP_STEPS))
+                           cfg=TINY.model,
+                           options=SamplerOptions(heatmap_steps=HEATMAP_STEPS,
+                                                  proposals=TINY.sample.proposals))
         one = jax.tree.map(lambda x: np.asarray(x)[0, 0], one)
         for batch in batches:
             want = slot(batch, b, s)
@@ -231,13 +233,13 @@ def test_real_network_order_channel_is_the_one_training_sees(real_inputs):
     actors = jax.tree.map(lambda x: jnp.asarray(x[0]), out.actors)  # [1, N]
     ego = jax.tree.map(lambda x: jnp.asarray(x[:1]), egos)
     assert int(actors.valid.sum()) > steps[-1]
-    bins = np.asarray(bin_index(actors.position[0], cfg))
+    bins = np.asarray(bin_index(actors.position[0], cfg.grid))
     no_order = {**params, "lstm1_order": np.zeros_like(params["lstm1_order"])}
     for k in steps:
-        first_k = actors.replace(valid=actors.valid & (jnp.arange(cfg.max_actors) < k))
+        first_k = actors.replace(valid=actors.valid & (jnp.arange(cfg.grid.max_actors) < k))
         scene = Scene(actors=first_k, ego=ego)
         cls = jnp.asarray(out.heatmap_cls[0, 0, k])[None]
-        allowed = jnp.arange(cfg.grid_size**2) >= (bins[k - 1] if k else 0)
+        allowed = jnp.arange(cfg.grid.grid_size**2) >= (bins[k - 1] if k else 0)
         want = []
         for p in (params, no_order):
             logits = reference_location_logits(p, cfg, jnp.asarray(maps[:1]), scene, k, cls)[0]
@@ -263,7 +265,7 @@ def test_library_calls_check_their_arguments_before_any_work(val_cache, data_roo
     from scenegen_jax.scene import empty_actors, tree_take
     from scenegen_jax.viz.render import render_scene
 
-    params = init_params(TINY, jax.random.key(0))
+    params = init_params(TINY.model, jax.random.key(0))
     cpu = get_config("cpu")
     for bad in (2**32, -1, 1.5, True, "3"):
         with pytest.raises(ValueError, match=r"seed: an integer in \[0, 2\*\*32\)"):
@@ -285,33 +287,63 @@ def test_library_calls_check_their_arguments_before_any_work(val_cache, data_roo
     egos = val_cache.ego(np.arange(2))
     refused(r"maps: shape \(2, 48, 48, 15\), config .tiny. needs \[B, 32, 32", sample_scenes,
             jax.random.key(0), params, TINY, val_cache.maps[:2], egos)
-    cropped = np.zeros((2, TINY.grid_size, TINY.grid_size, len(TINY.map_channels)), np.float32)
-    refused(r"egos: \(2,\) rows for 3 maps", sample_scenes, jax.random.key(0), params, TINY,
-            np.concatenate([cropped, cropped[:1]]), egos)
-    refused("num_per_map must be >= 1", sample_scenes, jax.random.key(0), params, TINY,
-            cropped, egos, num_per_map=0)
+    h = TINY.grid.grid_size
+    cropped = np.zeros((2, h, h, len(TINY.grid.map_channels)), np.float32)
+    refused(
+        r"egos: \(2,\) rows for 3 maps",
+        sample_scenes,
+        jax.random.key(0),
+        params,
+        TINY,
+        np.concatenate([cropped, cropped[:1]]),
+        egos,
+    )
+    refused(
+        "num_per_map must be >= 1",
+        sample_scenes,
+        jax.random.key(0),
+        params,
+        TINY,
+        cropped,
+        egos,
+        num_per_map=0,
+    )
     for caps in ([-1, 5, 5], [1, 1], [1.5, 2, 2]):
-        refused("caps: integers >= 0 of shape", sample_scenes, jax.random.key(0), params, TINY,
-                cropped, egos, caps=caps)
+        refused(
+            "caps: integers >= 0 of shape",
+            sample_scenes,
+            jax.random.key(0),
+            params,
+            TINY,
+            cropped,
+            egos,
+            caps=caps,
+        )
     # A legacy uint32 key (jax.random.PRNGKey) is the same key as jax.random.key's.
-    assert np.array_equal(jax.random.key_data(scene_keys(jax.random.PRNGKey(3), 2, 2)),
-                          jax.random.key_data(scene_keys(jax.random.key(3), 2, 2)))
+    assert np.array_equal(
+        jax.random.key_data(scene_keys(jax.random.PRNGKey(3), 2, 2)),
+        jax.random.key_data(scene_keys(jax.random.key(3), 2, 2)),
+    )
 
     refused("field grid_size", score_cache, params, val_cache, cpu)
     n = len(val_cache)
     for scenes in (range(0, n, 2), range(4, 2), range(0, n + 1), range(-1, 2)):
         refused(r"scenes range", score_cache, params, val_cache, TINY, scenes=scenes)
-    refused("batch_size and workers must be >= 1", score_cache, params, val_cache, TINY,
-            batch_size=0)
-    refused("batch_size and workers must be >= 1", score_cache, params, val_cache, TINY,
-            workers=0)
+    refused(
+        "batch_size and workers must be >= 1", score_cache, params, val_cache, TINY, batch_size=0
+    )
+    refused("batch_size and workers must be >= 1", score_cache, params, val_cache, TINY, workers=0)
     refused("num_scenes must be >= 1", evaluate, params, TINY, val_cache, val_cache, 0, 0)
     refused("seed", evaluate, params, TINY, val_cache, val_cache, 2, -1)
 
-    options = SamplerOptions(location_temperature=np.float32(0.5), proposals=np.int64(5),
-                             heatmap_steps=[0, 5])
+    options = SamplerOptions(
+        location_temperature=np.float32(0.5), proposals=np.int64(5), heatmap_steps=[0, 5]
+    )
     assert (options.location_temperature, options.proposals, options.heatmap_steps) == (
-        0.5, 5, (0, 5))
+        0.5,
+        5,
+        (0, 5),
+    )
     assert type(options.location_temperature) is float and type(options.proposals) is int
     for steps in ((-1,), 3, (True,)):
         refused("heatmap_steps must be integers >= 0", SamplerOptions, heatmap_steps=steps)
@@ -323,7 +355,19 @@ def test_library_calls_check_their_arguments_before_any_work(val_cache, data_roo
     for stride in (2.5, True, 0):
         refused("stride must be an integer >= 1", source_spec, "av2", data_root, "val", stride)
     assert len(load_union(pathlib.Path(val_cache.path))) == len(val_cache)
-    refused(f"scores of 2 scenes for a cache of {n}", summarize_by_source,
-            {"step_valid": np.zeros((2, 3), bool)}, val_cache)
-    refused(r"map_raster: shape \(48, 48, 15\)", render_scene, str(tmp_path / "x.png"),
-            val_cache.maps[0], TINY.map_channels, empty_actors(1), tree_take(egos, 0), TINY)
+    refused(
+        f"scores of 2 scenes for a cache of {n}",
+        summarize_by_source,
+        {"step_valid": np.zeros((2, 3), bool)},
+        val_cache,
+    )
+    refused(
+        r"map_raster: shape \(48, 48, 15\)",
+        render_scene,
+        str(tmp_path / "x.png"),
+        val_cache.maps[0],
+        TINY.grid.map_channels,
+        empty_actors(1),
+        tree_take(egos, 0),
+        TINY,
+    )

@@ -28,12 +28,15 @@ CFG = get_config("tiny")
 
 
 def test_bin_convention_row_major_top_left():
-    half = CFG.region_m / 2
-    assert int(bin_index(np.array([-half + 0.1, half - 0.1]), CFG)) == 0  # top left
-    assert int(bin_index(np.array([half - 0.1, half - 0.1]), CFG)) == CFG.grid_size - 1
-    assert int(bin_index(np.array([-half + 0.1, half - CFG.m_per_px - 0.1]), CFG)) == CFG.grid_size
-    for b in (0, 17, 500, CFG.grid_size**2 - 1):
-        assert int(bin_index(bin_center(b, CFG), CFG)) == b
+    half = CFG.grid.region_m / 2
+    assert int(bin_index(np.array([-half + 0.1, half - 0.1]), CFG.grid)) == 0  # top left
+    assert int(bin_index(np.array([half - 0.1, half - 0.1]), CFG.grid)) == CFG.grid.grid_size - 1
+    assert (
+        int(bin_index(np.array([-half + 0.1, half - CFG.grid.m_per_px - 0.1]), CFG.grid))
+        == CFG.grid.grid_size
+    )
+    for b in (0, 17, 500, CFG.grid.grid_size**2 - 1):
+        assert int(bin_index(bin_center(b, CFG.grid), CFG.grid)) == b
 
 
 def _actors(positions, cls=None):
@@ -49,49 +52,53 @@ def _actors(positions, cls=None):
 
 def test_canonical_order_sorts_left_right_top_bottom():
     a = _actors([[10.0, -10.0], [-10.0, 10.0], [10.0, 10.0], [-10.0, -10.0]])
-    ordered = canonical_order(a, CFG)
+    ordered = canonical_order(a, CFG.grid)
     pos = np.asarray(ordered.position)[:4]
     np.testing.assert_allclose(pos, [[-10, 10], [10, 10], [-10, -10], [10, -10]])
     assert np.asarray(ordered.valid).tolist() == [True] * 4 + [False] * 4
-    jitted = jax.jit(lambda x: canonical_order(x, CFG))(a)
+    jitted = jax.jit(lambda x: canonical_order(x, CFG.grid))(a)
     np.testing.assert_array_equal(np.asarray(jitted.position), np.asarray(ordered.position))
 
 
 def test_validate_names_the_field():
-    actors = canonical_order(_actors([[1.0, 2.0], [3.0, -4.0]]), CFG)
-    ok = Scene(actors=actors, ego=make_ego(CFG.ego_size_m))
-    jax.tree.map(np.asarray, ok).validate(CFG)
+    actors = canonical_order(_actors([[1.0, 2.0], [3.0, -4.0]]), CFG.grid)
+    ok = Scene(actors=actors, ego=make_ego(CFG.grid.ego_size_m))
+    jax.tree.map(np.asarray, ok).validate(CFG.grid)
     bad = _actors([[1.0, 2.0]])
     bad.size[0] = (0.0, 4.0)
     with pytest.raises(ValueError, match=r"^s\.actors\.size: box width and length"):
-        Scene(actors=bad, ego=make_ego(CFG.ego_size_m)).validate(CFG, "s")
+        Scene(actors=bad, ego=make_ego(CFG.grid.ego_size_m)).validate(CFG.grid, "s")
     bad = _actors([[1.0, np.nan]])
     with pytest.raises(ValueError, match=r"^s\.actors\.position: NaN or inf"):
-        Scene(actors=bad, ego=make_ego(CFG.ego_size_m)).validate(CFG, "s")
+        Scene(actors=bad, ego=make_ego(CFG.grid.ego_size_m)).validate(CFG.grid, "s")
     far = _actors([[500.0, 0.0]])
     with pytest.raises(ValueError, match=r"^s\.actors\.position: actor outside"):
-        Scene(actors=far, ego=make_ego(CFG.ego_size_m)).validate(CFG, "s")
+        Scene(actors=far, ego=make_ego(CFG.grid.ego_size_m)).validate(CFG.grid, "s")
     unordered = _actors([[10.0, -10.0], [-10.0, 10.0]])
     with pytest.raises(ValueError, match=r"^scene\.actors: not in canonical"):  # the default
-        Scene(actors=unordered, ego=make_ego(CFG.ego_size_m)).validate(CFG)
+        Scene(actors=unordered, ego=make_ego(CFG.grid.ego_size_m)).validate(CFG.grid)
     ped = _actors([[1.0, 2.0]], cls=[PEDESTRIAN])
     ped.size[0] = 0.0  # pedestrians have no box
-    Scene(actors=ped, ego=make_ego(CFG.ego_size_m)).validate(CFG)
+    Scene(actors=ped, ego=make_ego(CFG.grid.ego_size_m)).validate(CFG.grid)
 
 
 def test_cache_scenes_are_valid_and_complete(tiny_train_cache):
     cache = tiny_train_cache
     assert len(cache) == 3 * 20  # every 8th of the 156 frames of each of the 3 train logs
-    assert cache.maps.shape[1:] == (CFG.canvas_size, CFG.canvas_size, len(ALL_MAP_CHANNELS))
+    assert cache.maps.shape[1:] == (
+        CFG.grid.canvas_size,
+        CFG.grid.canvas_size,
+        len(ALL_MAP_CHANNELS),
+    )
     for index in range(0, len(cache), 5):
         canvas, actors, ego = cached_scene(cache, index, CFG)
-        m, scene, overflow = jax.jit(lambda c, a, e, t: scene_from_cached(c, a, e, t, CFG))(
+        m, scene, overflow = jax.jit(lambda c, a, e, t: scene_from_cached(c, a, e, t, CFG.grid))(
             canvas, actors, ego, 0.3 * index
         )
         scene = jax.tree.map(np.asarray, scene)
-        scene.validate(CFG, where=f"scene {index}")
+        scene.validate(CFG.grid, where=f"scene {index}")
         assert int(overflow) == 0
-        assert m.shape == (CFG.grid_size, CFG.grid_size, len(CFG.map_channels))
+        assert m.shape == (CFG.grid.grid_size, CFG.grid.grid_size, len(CFG.grid.map_channels))
 
 
 def test_cache_summary_and_bad_cache(tiny_train_cache, tmp_path):
@@ -132,17 +139,28 @@ def _damaged_copy(src: str, dst, actors=None, maps=None) -> str:
     return str(dst)
 
 
-@pytest.mark.parametrize("field, damage, says", [
-    ("cls", lambda v: v.astype(np.float32) + 0.5, r"field cls: float32 \(60, 98\), expected "
-     r"integer \(60, 98\)"),
-    ("velocity", lambda v: v.astype(str), r"field velocity: <U\d+ \(60, 98, 2\)"),
-    ("position", lambda v: v[..., 0], r"field position: float32 \(60, 98\), expected float "
-     r"\(60, 98, 2\)"),
-    ("valid", lambda v: v[..., None], r"field valid: bool \(60, 98, 1\)"),
-    ("ego_size", lambda v: -v, "field ego_size: sizes must be finite and positive"),
-    ("ego_velocity", lambda v: np.full_like(v, np.inf), "field ego_velocity: NaN or inf"),
-    ("position", lambda v: v + 1e3, "field position: scene 0 slot 0 lies beyond the canvas"),
-])
+@pytest.mark.parametrize(
+    "field, damage, says",
+    [
+        (
+            "cls",
+            lambda v: v.astype(np.float32) + 0.5,
+            r"field cls: float32 \(60, 98\), expected "
+            r"integer \(60, 98\)",
+        ),
+        ("velocity", lambda v: v.astype(str), r"field velocity: <U\d+ \(60, 98, 2\)"),
+        (
+            "position",
+            lambda v: v[..., 0],
+            r"field position: float32 \(60, 98\), expected float "
+            r"\(60, 98, 2\)",
+        ),
+        ("valid", lambda v: v[..., None], r"field valid: bool \(60, 98, 1\)"),
+        ("ego_size", lambda v: -v, "field ego_size: sizes must be finite and positive"),
+        ("ego_velocity", lambda v: np.full_like(v, np.inf), "field ego_velocity: NaN or inf"),
+        ("position", lambda v: v + 1e3, "field position: scene 0 slot 0 lies beyond the canvas"),
+    ],
+)
 def test_damaged_actor_arrays_name_the_field(tiny_train_cache, tmp_path, field, damage, says):
     """Arrays of another dtype or shape, egos of impossible sizes and actors beyond the canvas
     (a cache edited or written by something else) are refused naming the file and field."""
@@ -167,14 +185,14 @@ def test_damaged_maps_are_named(tiny_train_cache, tmp_path):
     # NaN in a map reads (the canvases are memory-mapped, not scanned), but scoring stops at
     # the scene before any work on it.
     cache = load_cache(_damaged_copy(tiny_train_cache.path, tmp_path / "nan", maps=nan_scene_1))
-    params = init_params(CFG, jax.random.key(0))
+    params = init_params(CFG.model, jax.random.key(0))
     with pytest.raises(ValueError, match=r"nan: .*: field canvas: NaN or inf"):
-        score_cache(params, cache, CFG, batch_size=2, progress=False, workers=1,
-                    scenes=range(2))
+        score_cache(params, cache, CFG, batch_size=2, progress=False, workers=1, scenes=range(2))
 
 
-@pytest.mark.parametrize("name, keep", [("actors.npz", 0.5), ("maps.npy", 0.5),
-                                         ("maps.npy", 0.0), ("meta.json", 0.5)])
+@pytest.mark.parametrize(
+    "name, keep", [("actors.npz", 0.5), ("maps.npy", 0.5), ("maps.npy", 0.0), ("meta.json", 0.5)]
+)
 def test_truncated_cache_files_are_named(tiny_train_cache, tmp_path, name, keep):
     """A cache file cut short (a full disk, a killed copy) gives one error naming it."""
     src, dst = tiny_train_cache.path, tmp_path / "cut"
@@ -191,8 +209,8 @@ def test_truncated_cache_files_are_named(tiny_train_cache, tmp_path, name, keep)
 def test_overflow_is_counted():
     cfg = CFG.replace(max_actors=3)
     a = _actors([[x, 0.0] for x in (-30.0, -10.0, 5.0, 20.0, 30.0)])
-    canvas = np.zeros((cfg.canvas_size, cfg.canvas_size, 11), np.float32)
-    _, scene, overflow = scene_from_cached(canvas, a, make_ego(cfg.ego_size_m), 0.0, cfg)
+    canvas = np.zeros((cfg.grid.canvas_size, cfg.grid.canvas_size, 11), np.float32)
+    _, scene, overflow = scene_from_cached(canvas, a, make_ego(cfg.grid.ego_size_m), 0.0, cfg.grid)
     assert int(overflow) == 2 and int(np.sum(scene.actors.valid)) == 3
     assert isinstance(scene.actors, Actors)
 

@@ -36,7 +36,7 @@ def off_road_point(drivable: np.ndarray, cfg) -> np.ndarray:
         raise ValueError("the whole region is drivable: no off-road point")
     distance = ndimage.distance_transform_edt(~drivable)
     row, col = np.unravel_index(np.argmax(distance), distance.shape)
-    return pixel_centers(cfg)[row, col]
+    return pixel_centers(cfg.grid)[row, col]
 
 
 @pytest.fixture(scope="module")
@@ -75,7 +75,7 @@ def test_same_model_scored_twice_is_identical(tiny_train_cache, fitted):
 
 @jax.jit
 def _scores(params, batch):
-    return score_batch(params, batch, CFG)
+    return score_batch(params, batch, CFG.model)
 
 
 def _location_nll(params, batch):
@@ -83,16 +83,16 @@ def _location_nll(params, batch):
 
 
 def test_actor_moved_into_a_block_scores_higher_location_nll(tiny_train_cache, scenes, fitted):
-    batch = gather_batch(tiny_train_cache, scenes, CFG)
+    batch = gather_batch(tiny_train_cache, scenes, CFG.grid)
     base = _location_nll(fitted, batch).sum(1)
     full = CFG.replace(map_layers=("lanes", "drivable", "crosswalks"))
-    drivable_channel = full.map_channels.index("drivable_area")
+    drivable_channel = full.grid.map_channels.index("drivable_area")
     moved_count, higher = 0, 0
     for b in range(len(scenes)):
-        grid = np.asarray(crop_map(jnp.asarray(batch.canvas[b]), 0.0, full))
+        grid = np.asarray(crop_map(jnp.asarray(batch.canvas[b]), 0.0, full.grid))
         target = off_road_point(grid[..., drivable_channel] > 0.5, CFG)
         a = batch.actors
-        inside = np.asarray(in_region(jnp.asarray(a.position[b]), CFG)) & a.valid[b]
+        inside = np.asarray(in_region(jnp.asarray(a.position[b]), CFG.grid)) & a.valid[b]
         for j in np.flatnonzero(inside & (a.cls[b] == VEHICLE)):
             position = a.position.copy()
             position[b, j] = target
@@ -133,20 +133,21 @@ def test_score_cli_terms_sum_and_top_k(tiny_train_cache, tmp_path, capsys):
     # Each term of the first two rows against the step-by-step reference of the model
     # (tests/reference_unroll.py) under the checkpoint the command scored with.
     _, params, _ = load_params(workdir)
-    maps, scene = crop_batch(gather_batch(tiny_train_cache, np.arange(2), CFG), jnp.zeros(2),
-                             CFG)
+    maps, scene = crop_batch(gather_batch(tiny_train_cache, np.arange(2), CFG.grid), jnp.zeros(2),
+                             CFG.grid)
     ref = reference_step_terms(params, CFG, maps, scene, None)
     for i in range(2):
         for k in TERMS:
             assert float(rows[i][f"{k}_nll"]) == pytest.approx(-float(ref[k][i].sum()), abs=2e-3)
     # Scenes with more actors in the region than CFG's 6 slots (every one of the tiny cache's)
     # are scored on their first 6, without the stop token.
-    pos, half = tiny_train_cache.actors.position, CFG.region_m / 2
+    pos, half = tiny_train_cache.actors.position, CFG.grid.region_m / 2
     in_region = tiny_train_cache.actors.valid & ((pos >= -half) & (pos < half)).all(-1)
-    truncated = in_region.sum(1) > CFG.max_actors
+    truncated = in_region.sum(1) > CFG.grid.max_actors
     assert truncated.any()
     assert [int(r["complete"]) for r in rows] == list((~truncated).astype(int))
-    assert [int(r["actors"]) for r in rows] == list(np.minimum(in_region.sum(1), CFG.max_actors))
+    want = np.minimum(in_region.sum(1), CFG.grid.max_actors)
+    assert [int(r["actors"]) for r in rows] == list(want)
     assert summary["scenes_truncated"] == truncated.sum()
     per_actor = np.array([float(r["nll_per_actor"]) for r in rows])
     expected = np.argsort(-per_actor, kind="stable")[:3]

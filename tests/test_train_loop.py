@@ -104,7 +104,7 @@ def test_ema_averages_every_steps_parameters_resumes_and_is_what_the_workdir_giv
     assert max(moved) > 1e-4, "the average lags the parameters"
 
     cfg_read, params, at = load_params(workdir)
-    assert at == 2 and cfg_read.ema_decay == 0.75
+    assert at == 2 and cfg_read.train.ema_decay == 0.75
     for a, e in zip(jax.tree.leaves(params), saved_at_two, strict=True):
         np.testing.assert_allclose(a, e, rtol=1e-6, atol=1e-7)
     _, resumed = load_trained(workdir)

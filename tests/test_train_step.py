@@ -102,7 +102,7 @@ def test_split_train_step_equals_the_one_program_step(tiny_train_cache, small_sc
     from scenegen_jax.train.step import SplitTrainStep
 
     cfg = CFG.replace(rotate_augment=True, bptt_window=6)
-    assert chunk_steps(cfg) == 3 and num_windows(cfg) == 2
+    assert chunk_steps(cfg.model) == 3 and num_windows(cfg.model) == 2
     batch = jax.device_put(batch_of(tiny_train_cache, small_scenes))
     shapes = jax.eval_shape(lambda: (init_state(cfg), batch))
     split, fused = SplitTrainStep(cfg, *shapes, quick=False), make_train_step(cfg)
@@ -118,7 +118,8 @@ def test_split_train_step_equals_the_one_program_step(tiny_train_cache, small_sc
             np.testing.assert_allclose(sa[k], sb[k], rtol=2e-5, atol=1e-5, err_msg=k)
         # Every parameter array on its own, so that a small one left without its gradient
         # fails even where the whole tree's norm hardly moves.
-        assert_same_adam_training(init, flat(a.params), flat(b.params), cfg.learning_rate, step)
+        assert_same_adam_training(init, flat(a.params), flat(b.params), cfg.train.learning_rate,
+                                  step)
     assert int(a.step) == 2
 
 
@@ -181,27 +182,44 @@ def test_train_step_compiles_once(tiny_train_cache):
     step = jax.jit(counted, donate_argnums=0)
     state = init_state(CFG)
     for i in range(3):
-        idx = batch_indices(len(tiny_train_cache), CFG.batch_size, CFG.seed, i)
+        idx = batch_indices(len(tiny_train_cache), CFG.train.batch_size, CFG.train.seed, i)
         state, _ = step(state, jax.device_put(batch_of(tiny_train_cache, idx)))
     assert len(traces) == 1
 
 
 def _batch_shapes(cfg, b: int) -> Batch:
     """The shapes and dtypes of a cached batch of `b` scenes of `cfg` (`gather_batch`)."""
-    s, m = cfg.canvas_size, cfg.max_actors
+    s, m = cfg.grid.canvas_size, cfg.grid.max_actors
     sds = jax.ShapeDtypeStruct
-    actors = Actors(cls=sds((b, m), np.int32), position=sds((b, m, 2), np.float32),
-                    size=sds((b, m, 2), np.float32), heading=sds((b, m), np.float32),
-                    velocity=sds((b, m, 2), np.float32), valid=sds((b, m), np.bool_))
-    ego = jax.tree.map(lambda x: sds((b, *x.shape), x.dtype), make_ego(cfg.ego_size_m))
+    actors = Actors(
+        cls=sds((b, m), np.int32),
+        position=sds((b, m, 2), np.float32),
+        size=sds((b, m, 2), np.float32),
+        heading=sds((b, m), np.float32),
+        velocity=sds((b, m, 2), np.float32),
+        valid=sds((b, m), np.bool_),
+    )
+    ego = jax.tree.map(lambda x: sds((b, *x.shape), x.dtype), make_ego(cfg.grid.ego_size_m))
     return Batch(sds((b, s, s, len(ALL_MAP_CHANNELS)), np.float16), actors, ego)
 
 
-@pytest.mark.parametrize("cfg", [
-    get_config("tiny", batch_size=1, bptt_window=10, max_actors=9),  # hidden 16, grid 32
-    get_config("paper", grid_size=128, m_per_px=0.625, max_actors=4, bptt_window=5,
-               batch_size=1, gn_groups=8, remat=False),  # hidden 32
-], ids=["tiny", "paper-grid128"])
+@pytest.mark.parametrize(
+    "cfg",
+    [
+        get_config("tiny", batch_size=1, bptt_window=10, max_actors=9),  # hidden 16, grid 32
+        get_config(
+            "paper",
+            grid_size=128,
+            m_per_px=0.625,
+            max_actors=4,
+            bptt_window=5,
+            batch_size=1,
+            gn_groups=8,
+            remat=False,
+        ),  # hidden 32
+    ],
+    ids=["tiny", "paper-grid128"],
+)
 def test_step_memory_estimate_follows_xlas_buffer_plan(cfg):
     """`remat` "auto" decides on `step_bytes_without_remat`: within 10 % of the buffers XLA
     plans for the step without remat, at the presets' two hidden widths (its terms' fit)."""
@@ -218,10 +236,10 @@ def test_remat_auto_stores_activations_where_they_fit(monkeypatch):
     assert need == 25 * 320**2 * (60 * 32 + 2800)  # 11.3 GiB: the paper's T 25, one scene
     assert step_bytes_without_remat(cfg, 16) == 16 * need
     monkeypatch.setattr(step_module, "free_memory_bytes", lambda: int(need / REMAT_FREE_SHARE) + 1)
-    assert resolve_remat(cfg, 1).remat is False
-    assert resolve_remat(cfg, 2).remat is True
+    assert resolve_remat(cfg, 1).train.remat is False
+    assert resolve_remat(cfg, 2).train.remat is True
     monkeypatch.setattr(step_module, "free_memory_bytes", lambda: 0)
-    assert resolve_remat(cfg.replace(remat=False), 1).remat is False  # set values are kept
+    assert resolve_remat(cfg.replace(remat=False), 1).train.remat is False  # set values are kept
     assert resolve_remat(get_config("tiny"), 1) == get_config("tiny")
 
 
@@ -230,15 +248,17 @@ def test_empty_scene_is_one_stop_step(tiny_train_cache, small_scenes):
     empty = batch.actors.replace(valid=np.zeros_like(batch.actors.valid))
     batch = Batch(batch.canvas, empty, batch.ego)
     params = random_params(CFG, jax.random.key(3))
-    maps, scene = crop_batch(batch, jnp.zeros(2), CFG)
+    maps, scene = crop_batch(batch, jnp.zeros(2), CFG.grid)
     terms, valid, cls = jax.jit(
-        lambda p: unroll_terms(p, CFG, maps, scene, CFG.hard_negatives))(params)
+        lambda p: unroll_terms(p, CFG.model, maps, scene, CFG.train.hard_negatives)
+    )(params)
     assert np.asarray(valid).sum(1).tolist() == [1, 1]
     assert np.asarray(cls)[:, 0].tolist() == [3, 3]
     for k in ("location", "box", "heading", "velocity"):
         assert np.all(np.asarray(terms[k]) == 0)
     (loss, _), grads = jax.jit(jax.value_and_grad(loss_fn, has_aux=True), static_argnums=1)(
-        params, CFG, maps, scene)
+        params, CFG, maps, scene
+    )
     assert np.isfinite(float(loss)) and float(loss) > 0
     assert all(np.all(np.isfinite(g)) for g in jax.tree.leaves(grads))
 
@@ -256,16 +276,20 @@ def test_map_dropout_trains_as_on_a_blank_map(tiny_train_cache, small_scenes):
         CFG.replace(map_dropout=1.5)
 
 
-def test_train_layers_trains_only_the_weights_of_those_map_channels(tiny_train_cache,
-                                                                    small_scenes):
-    cfg = CFG.replace(map_layers=("lanes", "drivable", "crosswalks"), attribute_map_input=True,
-                      separate_attribute_mlps=True, train_layers=("drivable",), learning_rate=1e-2)
+def test_train_layers_trains_only_the_weights_of_those_map_channels(tiny_train_cache, small_scenes):
+    cfg = CFG.replace(
+        map_layers=("lanes", "drivable", "crosswalks"),
+        attribute_map_input=True,
+        separate_attribute_mlps=True,
+        train_layers=("drivable",),
+        learning_rate=1e-2,
+    )
     batch = jax.device_put(batch_of(tiny_train_cache, small_scenes))
     state = init_state(cfg)
     start = flatten_dict(jax.tree.map(np.array, state.params), sep="/")
     new, _ = jitted_train_step(state, batch, cfg)
     end = flatten_dict(new.params, sep="/")
-    drivable = cfg.map_channels.index("drivable_area")
+    drivable = cfg.grid.map_channels.index("drivable_area")
     changed = []
     for name, before in start.items():
         after = np.asarray(end[name])
@@ -301,8 +325,7 @@ def test_train_params_trains_only_those_parameters():
         if "loc2_w" in jax.tree_util.keystr(path):
             assert np.all(np.asarray(u) != 0)  # every entry of a named parameter trains
     with pytest.raises(ValueError, match=r"train_params: no parameter \['lstm9'\]"):
-        make_optimizer(cfg.replace(train_params=("lstm9",))).update(
-            grads, opt.init(params), params)
+        make_optimizer(cfg.replace(train_params=("lstm9",))).update(grads, opt.init(params), params)
     with pytest.raises(ValueError, match="train_params"):
         CFG.replace(train_params=("",))
 
@@ -322,7 +345,7 @@ def test_a_fresh_state_holds_the_parameters_of_its_seed_and_zero_optimizer_momen
 
     state = init_state(CFG, seed=5)
     init_key, base = jax.random.split(jax.random.key(5))
-    expected = init_params(CFG, init_key)
+    expected = init_params(CFG.model, init_key)
     for a, e in zip(jax.tree.leaves(state.params), jax.tree.leaves(expected), strict=True):
         np.testing.assert_allclose(a, e, rtol=1e-6, atol=1e-7)
     assert int(state.step) == 0
@@ -370,10 +393,11 @@ from scenegen_jax.train.step import init_state, make_train_step
 from jax.sharding import NamedSharding, PartitionSpec as P
 assert jax.device_count() == 8, jax.devices()
 # CFG's one window of 7 steps: two programs to compile, each smaller than with two windows.
-cfg = get_config("tiny").replace(max_actors={CFG.max_actors}, bptt_window={CFG.bptt_window},
+cfg = get_config("tiny").replace(max_actors={CFG.grid.max_actors},
+                                 bptt_window={CFG.model.bptt_window},
                                  batch_size=8, hidden=8, gn_groups=2)
 cache = load_cache({tiny_train_cache.path!r})
-host = gather_batch(cache, np.arange(8), cfg)
+host = gather_batch(cache, np.arange(8), cfg.grid)
 out, params = [], {{"init": init_state(cfg).params}}
 for name, mesh in (("one", make_mesh(jax.devices()[:1])), ("eight", make_mesh())):
     step = make_train_step(cfg, mesh)
@@ -388,8 +412,9 @@ np.savez({str(out_file)!r}, **{{f"{{run}}|{{k}}": np.asarray(v) for run, p in pa
                               for k, v in flatten_dict(jax.device_get(p), sep="/").items()}})
 print("OK", out[0][0], out[1][0])
 """
-    env = with_xla_flags({**os.environ, "JAX_PLATFORMS": "cpu"},
-                         "--xla_force_host_platform_device_count=8")
+    env = with_xla_flags(
+        {**os.environ, "JAX_PLATFORMS": "cpu"}, "--xla_force_host_platform_device_count=8"
+    )
     res = subprocess.run(
         [sys.executable, "-c", script], env=env, capture_output=True, text=True, cwd=REPO
     )
@@ -400,5 +425,6 @@ print("OK", out[0][0], out[1][0])
         for key in f.files:
             run, name = key.split("|")
             runs.setdefault(run, {})[name] = f[key]
-    assert_same_adam_training(runs["init"], runs["one"], runs["eight"],
-                              get_config("tiny").learning_rate, 1)
+    assert_same_adam_training(
+        runs["init"], runs["one"], runs["eight"], get_config("tiny").train.learning_rate, 1
+    )

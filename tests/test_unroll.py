@@ -23,14 +23,14 @@ def small_scenes(tiny_train_cache):
 
 
 def _batch(cache, idx):
-    return gather_batch(cache, np.asarray(idx), CFG)
+    return gather_batch(cache, np.asarray(idx), CFG.grid)
 
 
 def _crop(cache, idx, thetas, cfg):
     """`crop_batch` of the two small scenes, the first read as complete: both hold more actors
     than CFG's 6 slots (so no stop token: `Scene.complete`); the first read as if its region
     held only those 6 gives the tests a stop token's terms too."""
-    maps, scene = crop_batch(_batch(cache, idx), jnp.asarray(thetas), cfg)
+    maps, scene = crop_batch(_batch(cache, idx), jnp.asarray(thetas), cfg.grid)
     return maps, scene.replace(complete=jnp.array([True, False]))
 
 
@@ -71,14 +71,14 @@ def test_fast_unroll_equals_plain_reference(reference_case, chunk_bytes, step_lo
     monkeypatch.setattr(backend, "compiled_step_loop", lambda differentiated=True: step_loop)
     monkeypatch.setattr(backend, "STEP_LOOP_UNROLL", 1)
     cfg, params, maps, scene, ref, g_ref = reference_case
-    fast, valid, _ = jax.jit(lambda p: unroll_terms(p, cfg, maps, scene, None))(params)
+    fast, valid, _ = jax.jit(lambda p: unroll_terms(p, cfg.model, maps, scene, None))(params)
     steps = ref["class"].shape[1]
     for k, v in ref.items():
         np.testing.assert_allclose(np.asarray(fast[k])[:, :steps], v, rtol=2e-4, atol=2e-3)
         assert np.all(np.asarray(fast[k])[:, steps:] == 0)
 
     def fast_loss(p):
-        t, _, _ = unroll_terms(p, cfg, maps, scene, 64)
+        t, _, _ = unroll_terms(p, cfg.model, maps, scene, 64)
         return -sum(jnp.sum(v) for v in t.values())
 
     # One program: eagerly, ~300-700 single operations would each compile on their own.
@@ -100,15 +100,20 @@ def test_only_a_differentiated_unroll_is_unrolled_on_cpu(reference_case):
     cfg = cfg.replace(bptt_window=16)  # lowered only: a window of 16 steps, 9 of them padding
 
     def lines(differentiated):  # of the lowered program: 16 steps against a loop body of 4
-        return jax.jit(lambda p: unroll_terms(p, cfg, maps, scene, None, differentiated)).lower(
-            params).as_text().count("\n")
+        return (
+            jax.jit(lambda p: unroll_terms(p, cfg.model, maps, scene, None, differentiated))
+            .lower(params)
+            .as_text()
+            .count("\n")
+        )
 
     assert (lines(False) < 0.8 * lines(True)) == backend.on_cpu()
 
 
 @pytest.mark.parametrize("step_loop", [False, True])
-def test_remat_gives_the_same_loss_and_gradients(tiny_train_cache, small_scenes, step_loop,
-                                                 monkeypatch):
+def test_remat_gives_the_same_loss_and_gradients(
+    tiny_train_cache, small_scenes, step_loop, monkeypatch
+):
     """Recomputing the backbone and heads in the backward pass (chunks of 3 steps and the
     windows unrolled as on CPU, or as on accelerators one step per iteration of the compiled
     step loop inside the compiled window loop; two windows of 4 with the state carried
@@ -125,7 +130,7 @@ def test_remat_gives_the_same_loss_and_gradients(tiny_train_cache, small_scenes,
 
     def loss(p, remat):
         cfg = CFG.replace(bptt_window=4, remat=remat)
-        t, _, _ = unroll_terms(p, cfg, maps, scene, 64)
+        t, _, _ = unroll_terms(p, cfg.model, maps, scene, 64)
         return -sum(jnp.sum(v) for v in t.values())
 
     plain = jax.jit(jax.value_and_grad(lambda p: loss(p, False)))(params)
@@ -151,13 +156,15 @@ def autodiff_case(tiny_train_cache, small_scenes):
     maps, scene = _crop(tiny_train_cache, small_scenes, [0.5, 2.0], cfg)
     params = random_params(cfg, jax.random.key(4))
     value = jax.jit(jax.value_and_grad(loss_fn, has_aux=True), static_argnums=1)(
-        params, cfg, maps, scene)
+        params, cfg, maps, scene
+    )
     return maps, scene, params, value
 
 
 @pytest.mark.parametrize("remat,compiled_loop", [(False, False), (True, True)])
-def test_window_by_window_gradient_equals_autodiff(autodiff_case, remat, compiled_loop,
-                                                   monkeypatch):
+def test_window_by_window_gradient_equals_autodiff(
+    autodiff_case, remat, compiled_loop, monkeypatch
+):
     """The train step's gradient, taken one window at a time (windows of 3, three per scene of
     6 actors and the stop, the last of one step; windows and steps in Python loops as on CPU,
     or in the `lax.scan`s of accelerators), equals jax.grad of the mean scene NLL through the
@@ -165,15 +172,21 @@ def test_window_by_window_gradient_equals_autodiff(autodiff_case, remat, compile
     import scenegen_jax.backend as backend
 
     cfg = CFG.replace(bptt_window=3, remat=remat, hard_negatives=HARD_NEGATIVES)
-    assert num_windows(cfg) == 3
+    assert num_windows(cfg.model) == 3
     maps, scene, params, ((loss, stats), grads) = autodiff_case
     monkeypatch.setattr(backend, "compiled_window_loop", lambda: compiled_loop)
     monkeypatch.setattr(backend, "compiled_step_loop", lambda differentiated=True: compiled_loop)
     unrolled, windowed = jax.jit(
-        lambda p: unroll_terms_and_grads(p, cfg, maps, scene, 1.0 / 2))(params)
+        lambda p: unroll_terms_and_grads(
+            p, cfg.model, maps, scene, 1.0 / 2, cfg.train.hard_negatives, cfg.train.remat
+        )
+    )(params)
     scene_nll, stats_w = nll_metrics(*unrolled)
-    _, stats_fwd = nll_metrics(*jax.jit(
-        lambda p: unroll_terms(p, cfg, maps, scene, cfg.hard_negatives))(params))
+    _, stats_fwd = nll_metrics(
+        *jax.jit(lambda p: unroll_terms(p, cfg.model, maps, scene, cfg.train.hard_negatives))(
+            params
+        )
+    )
     np.testing.assert_allclose(jnp.mean(scene_nll), loss, rtol=1e-6)
     for k, v in stats.items():
         np.testing.assert_allclose(stats_w[k], v, rtol=1e-6)
@@ -194,18 +207,20 @@ def test_truncation_cuts_gradients_between_windows(tiny_train_cache, small_scene
 
     def window_grad(c):  # gradient of the class terms of the steps where `steps` is 1
         def loss(p, steps):
-            t, _, _ = unroll_terms(p, c, maps, scene, None)
+            t, _, _ = unroll_terms(p, c.model, maps, scene, None)
             return -jnp.sum(t["class"] * steps)
+
         return jax.jit(jax.grad(loss))  # one program for every mask of the steps
 
-    w = cfg.bptt_window
+    w = cfg.model.bptt_window
     one_window = cfg.replace(bptt_window=2 * w)  # all 8 steps in one window: nothing cut
     first = jnp.asarray(np.arange(2 * w) < w, jnp.float32)
     second = 1.0 - first
     cut, whole = window_grad(cfg), window_grad(one_window)
     # The first window's loss never reaches past the cut: the same gradient either way.
-    for a, b in zip(jax.tree.leaves(cut(params, first)), jax.tree.leaves(whole(params, first)),
-                    strict=True):
+    for a, b in zip(
+        jax.tree.leaves(cut(params, first)), jax.tree.leaves(whole(params, first)), strict=True
+    ):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
     # The second window's loss reaches the first window's steps only through the state, whose
     # gradient is cut: the recurrent weights lose that path's share of their gradient.
@@ -214,12 +229,13 @@ def test_truncation_cuts_gradients_between_windows(tiny_train_cache, small_scene
     assert float(jnp.abs(g2).max()) > 0
     assert not np.allclose(g2, g2_whole, rtol=1e-3, atol=1e-6)
     # Every step of both windows contributes: the second window's terms are non-zero.
-    t, valid, _ = jax.jit(lambda p: unroll_terms(p, cfg, maps, scene, None))(params)
+    t, valid, _ = jax.jit(lambda p: unroll_terms(p, cfg.model, maps, scene, None))(params)
     assert np.all(np.asarray(t["class"])[np.asarray(valid)] != 0)
+
     # Without a gradient (the scorer) the steps run as one window: the program of a single
     # window of all 8 steps, and the same terms.
     def scorer(c):
-        return jax.jit(lambda p: unroll_terms(p, c, maps, scene, None, differentiated=False))
+        return jax.jit(lambda p: unroll_terms(p, c.model, maps, scene, None, differentiated=False))
 
     assert scorer(cfg).lower(params).as_text() == scorer(one_window).lower(params).as_text()
     scored, scored_valid, _ = scorer(cfg)(params)
@@ -235,14 +251,14 @@ def test_a_truncated_scene_has_no_stop_token(tiny_train_cache, small_scenes):
     complete scene score the same terms at their 6 steps, plus the stop token's."""
     from scenegen_jax.scene import STOP
 
-    maps, scene = crop_batch(_batch(tiny_train_cache, small_scenes), jnp.zeros(2), CFG)
+    maps, scene = crop_batch(_batch(tiny_train_cache, small_scenes), jnp.zeros(2), CFG.grid)
     assert not np.any(np.asarray(scene.complete))
     assert np.all(np.asarray(scene.actors.valid))  # every slot is taken
     params = random_params(CFG, jax.random.key(5))
-    unroll = jax.jit(lambda s: unroll_terms(params, CFG, maps, s, None))
+    unroll = jax.jit(lambda s: unroll_terms(params, CFG.model, maps, s, None))
     cut, cut_valid, cut_cls = unroll(scene)
     whole, whole_valid, whole_cls = unroll(scene.replace(complete=jnp.ones(2, bool)))
-    n = CFG.max_actors
+    n = CFG.grid.max_actors
     np.testing.assert_array_equal(np.asarray(cut_valid).sum(1), [n, n])
     np.testing.assert_array_equal(np.asarray(whole_valid).sum(1), [n + 1, n + 1])
     assert not np.any(np.asarray(cut_cls)[np.asarray(cut_valid)] == STOP)

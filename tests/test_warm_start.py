@@ -64,7 +64,7 @@ def test_init_from_reads_a_pretrained_model_or_names_what_it_is_not(tmp_path):
     params = init_state(CFG, seed=3).params
     save_pretrained(str(tmp_path / "model"), CFG, params, 7, "test")
     cfg, loaded = start_params(str(tmp_path / "model"))
-    assert cfg.map_channels == CFG.map_channels and cfg.hidden == CFG.hidden
+    assert cfg.grid.map_channels == CFG.grid.map_channels and cfg.model.hidden == CFG.model.hidden
     for a, b in zip(jax.tree.leaves(loaded), jax.tree.leaves(params), strict=True):
         np.testing.assert_array_equal(a, b)
     with pytest.raises(FileNotFoundError, match="neither a workdir with checkpoints/ nor a "
@@ -97,18 +97,18 @@ def test_coordinate_channels_tell_rows_apart_and_start_at_zero_from_a_warm_start
     from scenegen_jax.train.warm_start import warm_start
 
     coord = CFG.replace(coord_channels=True)
-    net = SceneGenNet(coord)
-    flat_map = jnp.ones((1, CFG.grid_size, CFG.grid_size, len(CFG.map_channels)))
+    net = SceneGenNet(coord.model)
+    flat_map = jnp.ones((1, CFG.grid.grid_size, CFG.grid.grid_size, len(CFG.grid.map_channels)))
     params = init_state(coord, seed=2).params
     gates = net.apply({"params": params}, flat_map, method=SceneGenNet.map_gates)
-    mid = CFG.grid_size // 2
+    mid = CFG.grid.grid_size // 2
     assert float(jnp.abs(gates[0, 3, mid] - gates[0, -4, mid]).max()) > 1e-3  # top vs bottom
     assert float(jnp.abs(gates[0, mid, 3] - gates[0, mid, -4]).max()) > 1e-3  # left vs right
 
     source = init_state(CFG, seed=1).params
     extended = warm_start(params, source, "src")
     assert not np.any(np.asarray(extended["lstm1_coord"]))
-    want = SceneGenNet(CFG).apply({"params": source}, flat_map, method=SceneGenNet.map_gates)
+    want = SceneGenNet(CFG.model).apply({"params": source}, flat_map, method=SceneGenNet.map_gates)
     got = net.apply({"params": extended}, flat_map, method=SceneGenNet.map_gates)
     np.testing.assert_array_equal(got, want)
 
@@ -122,9 +122,9 @@ def test_order_channel_and_attribute_map_input_start_at_zero_from_a_warm_start()
     from scenegen_jax.train.warm_start import warm_start
 
     order = CFG.replace(order_channel=True, attribute_map_input=True, attribute_map_skip=True)
-    net = SceneGenNet(order)
+    net = SceneGenNet(order.model)
     params = init_state(order, seed=2).params
-    n = CFG.grid_size
+    n = CFG.grid.grid_size
     prev = jnp.array([0, 5 * n + 7])  # first step; after an actor in row 5, column 7
     gates = net.apply({"params": params}, prev, method=SceneGenNet.order_gates)
     mask = np.ones((2, n, n, 1), np.float32)
@@ -142,12 +142,13 @@ def test_order_channel_and_attribute_map_input_start_at_zero_from_a_warm_start()
     assert not np.any(np.asarray(extended["heading2_map_w"]))
     assert not np.any(np.asarray(net.apply({"params": extended}, prev,
                                            method=SceneGenNet.order_gates)))
-    feat = jax.random.normal(jax.random.key(3), (5, CFG.hidden))
-    map_feat = jax.random.uniform(jax.random.key(4), (5, len(CFG.map_channels)))
+    feat = jax.random.normal(jax.random.key(3), (5, CFG.model.hidden))
+    map_feat = jax.random.uniform(jax.random.key(4), (5, len(CFG.grid.map_channels)))
     cls = jnp.array([0, 1, 2, 0, 1])
     with_map = net.apply({"params": params}, feat, cls, map_feat, method=SceneGenNet.attributes)
     got = net.apply({"params": extended}, feat, cls, map_feat, method=SceneGenNet.attributes)
-    want = SceneGenNet(CFG).apply({"params": source}, feat, cls, method=SceneGenNet.attributes)
+    want = SceneGenNet(CFG.model).apply({"params": source}, feat, cls,
+                                        method=SceneGenNet.attributes)
     for g, w in zip(got, want, strict=True):
         np.testing.assert_allclose(g, w, rtol=1e-6, atol=1e-6)
     # With its own (non-zero) map weights every attribute depends on the map at the bin.
@@ -164,8 +165,8 @@ def test_separate_attribute_mlps_keep_each_attribute_to_its_own_weights_and_warm
     from scenegen_jax.train.warm_start import warm_start
 
     sep, shared_cfg = (CFG.replace(separate_attribute_mlps=s) for s in (True, False))
-    net, shared_net = SceneGenNet(sep), SceneGenNet(shared_cfg)
-    feat = jax.random.normal(jax.random.key(0), (5, CFG.hidden))
+    net, shared_net = SceneGenNet(sep.model), SceneGenNet(shared_cfg.model)
+    feat = jax.random.normal(jax.random.key(0), (5, CFG.model.hidden))
     cls = jnp.array([0, 1, 2, 0, 2])
 
     def heading_grads(model, params):
@@ -202,19 +203,24 @@ def test_orientation_bins_tell_lane_directions_apart_and_start_at_zero_from_a_wa
     from scenegen_jax.train.warm_start import warm_start
 
     binned = CFG.replace(orientation_bins=4)
-    net = SceneGenNet(binned)
-    ic, is_ = (CFG.map_channels.index(c) for c in ("lane_orientation_cos",
-                                                     "lane_orientation_sin"))
-    east = np.zeros((1, CFG.grid_size, CFG.grid_size, len(CFG.map_channels)), np.float32)
-    east[0, 10:14, :, CFG.map_channels.index("lane_vehicle")] = 1.0
+    net = SceneGenNet(binned.model)
+    ic, is_ = (
+        CFG.grid.map_channels.index(c) for c in ("lane_orientation_cos", "lane_orientation_sin")
+    )
+    east = np.zeros(
+        (1, CFG.grid.grid_size, CFG.grid.grid_size, len(CFG.grid.map_channels)), np.float32
+    )
+    east[0, 10:14, :, CFG.grid.map_channels.index("lane_vehicle")] = 1.0
     west = east.copy()
     east[0, 10:14, :, ic], west[0, 10:14, :, ic] = 1.0, -1.0
     assert is_ != ic
     params = init_state(binned, seed=2).params
 
     def gate_gap(p):  # how far apart the east and west lanes' gates are on the lane
-        east_g, west_g = (net.apply({"params": p}, jnp.asarray(m), method=SceneGenNet.map_gates)
-                          for m in (east, west))
+        east_g, west_g = (
+            net.apply({"params": p}, jnp.asarray(m), method=SceneGenNet.map_gates)
+            for m in (east, west)
+        )
         return float(jnp.abs(east_g - west_g)[0, 12].max())
 
     # The raw cos channel differs too (+1 against -1): without the map convolution's weights
@@ -226,8 +232,9 @@ def test_orientation_bins_tell_lane_directions_apart_and_start_at_zero_from_a_wa
     source = init_state(CFG, seed=1).params
     extended = warm_start(params, source, "src")
     assert not np.any(np.asarray(extended["lstm1_orient"]))
-    want = SceneGenNet(CFG).apply({"params": source}, jnp.asarray(east),
-                                  method=SceneGenNet.map_gates)
+    want = SceneGenNet(CFG.model).apply(
+        {"params": source}, jnp.asarray(east), method=SceneGenNet.map_gates
+    )
     got = net.apply({"params": extended}, jnp.asarray(east), method=SceneGenNet.map_gates)
     np.testing.assert_array_equal(got, want)
 
@@ -239,34 +246,48 @@ def test_a_new_map_layer_group_starts_at_zero_from_a_warm_start():
     trained with a channel the config lacks is refused by name."""
     from scenegen_jax.train.warm_start import warm_start
 
-    old = CFG.replace(map_layers=("lanes", "drivable"), attribute_map_input=True,
-                      attribute_map_skip=True)
+    old = CFG.replace(
+        map_layers=("lanes", "drivable"), attribute_map_input=True, attribute_map_skip=True
+    )
     wide = old.replace(map_layers=("lanes", "drivable", "nearest_lane"))
-    assert wide.map_channels[-2:] == ("nearest_lane_cos", "nearest_lane_sin")
+    assert wide.grid.map_channels[-2:] == ("nearest_lane_cos", "nearest_lane_sin")
     source = init_state(old, seed=1).params
-    params = warm_start(init_state(wide, seed=2).params, source, "src", wide.map_channels,
-                        old.map_channels)
-    keep = [wide.map_channels.index(c) for c in old.map_channels]
-    np.testing.assert_array_equal(np.asarray(params["lstm1_map"])[:, :, keep],
-                                  source["lstm1_map"])
+    params = warm_start(
+        init_state(wide, seed=2).params,
+        source,
+        "src",
+        wide.grid.map_channels,
+        old.grid.map_channels,
+    )
+    keep = [wide.grid.map_channels.index(c) for c in old.grid.map_channels]
+    np.testing.assert_array_equal(np.asarray(params["lstm1_map"])[:, :, keep], source["lstm1_map"])
     assert not np.any(np.asarray(params["lstm1_map"])[:, :, -2:])
-    raster = jax.random.normal(jax.random.key(0), (1, CFG.grid_size, CFG.grid_size,
-                                                   len(wide.map_channels)))
-    got = SceneGenNet(wide).apply({"params": params}, raster, method=SceneGenNet.map_gates)
-    want = SceneGenNet(old).apply({"params": source}, raster[..., keep],
-                                  method=SceneGenNet.map_gates)
+    raster = jax.random.normal(
+        jax.random.key(0), (1, CFG.grid.grid_size, CFG.grid.grid_size, len(wide.grid.map_channels))
+    )
+    got = SceneGenNet(wide.model).apply({"params": params}, raster, method=SceneGenNet.map_gates)
+    want = SceneGenNet(old.model).apply(
+        {"params": source}, raster[..., keep], method=SceneGenNet.map_gates
+    )
     np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6)
-    feat = jax.random.normal(jax.random.key(3), (5, CFG.hidden))
+    feat = jax.random.normal(jax.random.key(3), (5, CFG.model.hidden))
     cls = jnp.array([0, 1, 2, 0, 1])
-    got = SceneGenNet(wide).apply({"params": params}, feat, cls, raster[0, 0, :5],
-                                  method=SceneGenNet.attributes)
-    want = SceneGenNet(old).apply({"params": source}, feat, cls, raster[0, 0, :5][:, keep],
-                                  method=SceneGenNet.attributes)
+    got = SceneGenNet(wide.model).apply(
+        {"params": params}, feat, cls, raster[0, 0, :5], method=SceneGenNet.attributes
+    )
+    want = SceneGenNet(old.model).apply(
+        {"params": source}, feat, cls, raster[0, 0, :5][:, keep], method=SceneGenNet.attributes
+    )
     for g, w in zip(got, want, strict=True):
         np.testing.assert_allclose(g, w, rtol=1e-6, atol=1e-6)
     with pytest.raises(ValueError, match=r"src: trained with map channels \['crosswalk'\]"):
-        warm_start(params, init_state(CFG, seed=1).params, "src", wide.map_channels,
-                   CFG.map_channels)
+        warm_start(
+            params,
+            init_state(CFG, seed=1).params,
+            "src",
+            wide.grid.map_channels,
+            CFG.grid.map_channels,
+        )
 
 
 def test_a_warm_start_into_the_lane_frame_starts_the_heading_layer_afresh():
@@ -276,8 +297,9 @@ def test_a_warm_start_into_the_lane_frame_starts_the_heading_layer_afresh():
 
     from scenegen_jax.train.warm_start import HEADING_LAST_LAYER, reframed, warm_start
 
-    old = CFG.replace(map_layers=("lanes", "nearest_lane"), attribute_map_input=True,
-                      attribute_map_skip=True)
+    old = CFG.replace(
+        map_layers=("lanes", "nearest_lane"), attribute_map_input=True, attribute_map_skip=True
+    )
     new = old.replace(heading_lane_frame=True)
     assert reframed(new, new) == () and reframed(old, old) == ()
     source = init_state(old, seed=1).params
@@ -289,5 +311,9 @@ def test_a_warm_start_into_the_lane_frame_starts_the_heading_layer_afresh():
         want = fresh[name] if name in HEADING_LAST_LAYER else source[name]
         np.testing.assert_array_equal(x, want, err_msg=name)
     with pytest.raises(ValueError, match="heading_lane_frame: .* separate_attribute_mlps"):
-        reframed(new.replace(separate_attribute_mlps=False, attribute_map_input=False,
-                             attribute_map_skip=False), old)
+        reframed(
+            new.replace(
+                separate_attribute_mlps=False, attribute_map_input=False, attribute_map_skip=False
+            ),
+            old,
+        )

@@ -99,14 +99,16 @@ def test_scores_through_winograd_match_the_direct_scores(winograd_on, tiny_train
     from scenegen_jax.likelihood.batch import gather_batch
     from scenegen_jax.model.network import init_params
 
-    params = init_params(CFG, jax.random.key(0))
-    batch = gather_batch(tiny_train_cache, np.arange(2), CFG)
+    params = init_params(CFG.model, jax.random.key(0))
+    batch = gather_batch(tiny_train_cache, np.arange(2), CFG.grid)
     # Traced under the fixture's choice: Winograd.
-    ours = jax.tree.map(np.asarray, jax.jit(lambda p, b: score_batch(p, b, CFG))(params, batch))
+    score = jax.jit(lambda p, b: score_batch(p, b, CFG.model))
+    ours = jax.tree.map(np.asarray, score(params, batch))
     with pytest.MonkeyPatch.context() as m:
         m.setattr(layers, "winograd_convolutions", lambda kernel, tiles: False)
-        direct = jax.tree.map(np.asarray,
-                              jax.jit(lambda p, b: score_batch(p, b, CFG))(params, batch))
+        direct = jax.tree.map(
+            np.asarray, jax.jit(lambda p, b: score_batch(p, b, CFG.model))(params, batch)
+        )
     assert ours.keys() == direct.keys()
     # Two programs: Winograd rounds differently from the direct convolutions.
     assert any(not np.array_equal(ours[k], direct[k]) for k in ours)

@@ -13,7 +13,7 @@ from scenegen_jax.train.step import train_step
 
 def batch_of(cache, idx):
     """The cached batch of scenes `idx` of `cache`, for the small config."""
-    return gather_batch(cache, np.asarray(idx), CFG)
+    return gather_batch(cache, np.asarray(idx), CFG.grid)
 
 
 # `train_step` compiled once per config. Run op by op, a module's first step compiles

@@ -63,12 +63,12 @@ def cmd_render(args) -> None:
     for n, index in enumerate(indices):
         canvas, actors, ego = cached_scene(cache, index, cfg)
         theta = np.deg2rad(args.rotate)
-        map_raster, scene, _ = scene_from_cached(canvas, actors, ego, theta, cfg)
+        map_raster, scene, _ = scene_from_cached(canvas, actors, ego, theta, cfg.grid)
         out = args.out if len(indices) == 1 else _numbered(args.out, n, index)
         render_scene(
             out,
             np.asarray(map_raster),
-            cfg.map_channels,
+            cfg.grid.map_channels,
             scene.actors,
             scene.ego,
             cfg,

@@ -68,7 +68,7 @@ def cmd_models(args) -> None:
         cfg, _, manifest = load_pretrained(name)
         sampler = "".join(f", {k.replace('_', ' ')} {v}"
                           for k, v in manifest.get("sampler", {}).items())
-        print(f"{name}\tconfig {cfg.name}, grid {cfg.grid_size}, step {manifest['step']}, "
+        print(f"{name}\tconfig {cfg.name}, grid {cfg.grid.grid_size}, step {manifest['step']}, "
               f"{manifest['parameters']} parameters{sampler}")
 
 

@@ -34,12 +34,12 @@ def parse_caps(pairs, cfg: Config):
 
     from scenegen_jax.scene import CLASS_NAMES, NUM_CLASSES
 
-    caps = np.full(NUM_CLASSES, cfg.max_actors, np.int32)
+    caps = np.full(NUM_CLASSES, cfg.grid.max_actors, np.int32)
     for pair in pairs or []:
         name, _, value = pair.partition("=")
         if name not in CLASS_NAMES or not value.isdigit():
             raise ValueError(f"--cap {pair!r}: expected CLASS=N with CLASS in {CLASS_NAMES}")
-        caps[CLASS_NAMES.index(name)] = min(int(value), cfg.max_actors)  # no more slots
+        caps[CLASS_NAMES.index(name)] = min(int(value), cfg.grid.max_actors)  # no more slots
     return caps
 
 
@@ -54,10 +54,10 @@ def write_sampled(out: str, scene, cache, cfg: Config, seed: int, heatmap_steps)
     ego = scene.ego
     title = f"{scene_id} on {map_id}  ({len(records)} actors, {scene.num_given} given)"
     render_scene(os.path.join(out, "png", f"{scene_id}.png"), scene.map_raster,
-                 cfg.map_channels, scene.actors, ego, cfg, title=title)
+                 cfg.grid.map_channels, scene.actors, ego, cfg, title=title)
     if heatmap_steps:
         render_heatmaps(os.path.join(out, "heatmaps", f"{scene_id}.png"), scene.map_raster,
-                        cfg.map_channels, scene.heatmaps, scene.heatmap_cls, heatmap_steps,
+                        cfg.grid.map_channels, scene.heatmaps, scene.heatmap_cls, heatmap_steps,
                         scene.actors, ego, cfg, title=title)
     return {
         "scene": scene_id, "map_index": scene.map_index, "map_scene_id": map_id, "seed": seed,

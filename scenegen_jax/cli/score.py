@@ -113,14 +113,14 @@ def _render_worst(scores, cache, cfg, k: int, out_dir: str) -> list[str]:
     paths = []
     for rank, (i, step, per_actor, terms) in enumerate(worst_scenes(scores, k)):
         canvas, actors, ego = cached_scene(cache, i, cfg)
-        map_raster, scene, _ = scene_from_cached(canvas, actors, ego, 0.0, cfg)
+        map_raster, scene, _ = scene_from_cached(canvas, actors, ego, 0.0, cfg.grid)
         cls = CLASS_NAMES[int(scene.actors.cls[step])]
         worst = ", ".join(f"{t} {v:.1f}" for t, v in terms.items())
         path = os.path.join(out_dir, f"top{rank + 1:02d}_{i:05d}.png")
         render_scene(
             path,
             np.asarray(map_raster),
-            cfg.map_channels,
+            cfg.grid.map_channels,
             scene.actors,
             scene.ego,
             cfg,

@@ -39,7 +39,9 @@ _KIND_NAMES = {"iu": "integer", "b": "bool", "f": "float"}
 def actors_in_region(cache, cfg: Config) -> np.ndarray:
     """[S] actors of each scene of a cache (or `CacheUnion`) inside the region of interest,
     unrotated (a rotation moves a few across its edge)."""
-    return np.sum(cache.actors.valid & np.asarray(in_region(cache.actors.position, cfg)), axis=1)
+    return np.sum(
+        cache.actors.valid & np.asarray(in_region(cache.actors.position, cfg.grid)), axis=1
+    )
 
 
 class StackedMaps:
@@ -102,7 +104,12 @@ class Cache:
 # What np.load raises on a truncated or damaged .npy / .npz: a header that is cut or no
 # Python literal fails in numpy's header parser with SyntaxError or tokenize.TokenError.
 _UNREADABLE_ARRAY = (
-    ValueError, OSError, EOFError, SyntaxError, TypeError, tokenize.TokenError,
+    ValueError,
+    OSError,
+    EOFError,
+    SyntaxError,
+    TypeError,
+    tokenize.TokenError,
     zipfile.BadZipFile,
 )
 
@@ -119,11 +126,15 @@ def load_cache(path: str) -> Cache:
     if not isinstance(meta, dict) or not isinstance(meta.get("scene_ids"), list):
         raise ValueError(f"{meta_path}: field scene_ids: missing or not a list")
     if meta.get("version") != CACHE_VERSION:
-        raise ValueError(f"{meta_path}: field version: {meta.get('version')} != {CACHE_VERSION}"
-                         " (a cache of another version of scenegen: re-run scenegen prepare)")
+        raise ValueError(
+            f"{meta_path}: field version: {meta.get('version')} != {CACHE_VERSION}"
+            " (a cache of another version of scenegen: re-run scenegen prepare)"
+        )
     if meta.get("channels") != list(ALL_MAP_CHANNELS):
-        raise ValueError(f"{meta_path}: field channels: cache channels differ from this "
-                         "version's (re-run scenegen prepare)")
+        raise ValueError(
+            f"{meta_path}: field channels: cache channels differ from this "
+            "version's (re-run scenegen prepare)"
+        )
     maps_path = os.path.join(path, "maps.npy")
     try:
         maps = np.load(maps_path, mmap_mode="r", allow_pickle=False)
@@ -164,8 +175,9 @@ def _check_layout(meta, meta_path, maps, maps_path, data, npz_path) -> None:
     for field in ("slots", "canvas_size", "grid_size"):
         value = meta.get(field)
         if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
-            raise ValueError(f"{meta_path}: field {field}: expected a positive integer, got "
-                             f"{value!r}")
+            raise ValueError(
+                f"{meta_path}: field {field}: expected a positive integer, got {value!r}"
+            )
     m = meta.get("m_per_px")
     if isinstance(m, bool) or not isinstance(m, int | float) or not 0 < m < math.inf:
         raise ValueError(f"{meta_path}: field m_per_px: expected a positive number, got {m!r}")
@@ -173,8 +185,10 @@ def _check_layout(meta, meta_path, maps, maps_path, data, npz_path) -> None:
     for k, (kinds, tail) in ARRAY_LAYOUT.items():
         want = (n, *(slots if d == "A" else d for d in tail))
         if data[k].dtype.kind not in kinds or data[k].shape != want:
-            raise ValueError(f"{npz_path}: field {k}: {data[k].dtype} {data[k].shape}, expected "
-                             f"{_KIND_NAMES[kinds]} {want}")
+            raise ValueError(
+                f"{npz_path}: field {k}: {data[k].dtype} {data[k].shape}, expected "
+                f"{_KIND_NAMES[kinds]} {want}"
+            )
     want = (n, canvas, canvas, len(ALL_MAP_CHANNELS))
     if maps.dtype.kind != "f" or maps.shape != want:
         raise ValueError(f"{maps_path}: {maps.dtype} {maps.shape}, expected float {want}")
@@ -184,12 +198,14 @@ def _check_places_and_egos(meta, data, npz_path) -> None:
     """Raises ValueError naming the field where a valid actor stands beyond the canvas's
     inscribed circle (`canvas_radius`: prepare keeps none there), or an ego's size is not
     finite and positive or its velocity not finite."""
-    radius = canvas_radius(Config(grid_size=meta["grid_size"], m_per_px=meta["m_per_px"]))
+    radius = canvas_radius(Config().replace(grid_size=meta["grid_size"], m_per_px=meta["m_per_px"]))
     far = data["valid"] & (np.hypot(*np.moveaxis(data["position"], -1, 0)) > radius + 1e-3)
     if far.any():
         scene, slot = (int(i[0]) for i in np.nonzero(far))
-        raise ValueError(f"{npz_path}: field position: scene {scene} slot {slot} lies beyond the "
-                         f"canvas ({radius:.2f} m from the ego); re-run prepare")
+        raise ValueError(
+            f"{npz_path}: field position: scene {scene} slot {slot} lies beyond the "
+            f"canvas ({radius:.2f} m from the ego); re-run prepare"
+        )
     if not (np.all(np.isfinite(data["ego_size"])) and np.all(data["ego_size"] > 0)):
         raise ValueError(f"{npz_path}: field ego_size: sizes must be finite and positive")
     if not np.all(np.isfinite(data["ego_velocity"])):
@@ -197,8 +213,15 @@ def _check_places_and_egos(meta, data, npz_path) -> None:
 
 
 # Fields every shard of a cache must share (the rest, scene ids and summaries, add up).
-SHARD_SHARED_FIELDS = ("version", "grid_size", "m_per_px", "canvas_size", "slots", "channels",
-                       "config")
+SHARD_SHARED_FIELDS = (
+    "version",
+    "grid_size",
+    "m_per_px",
+    "canvas_size",
+    "slots",
+    "channels",
+    "config",
+)
 
 
 def _load_sharded(path: str) -> Cache:
@@ -210,27 +233,34 @@ def _load_sharded(path: str) -> Cache:
             found[(int(m[1]), int(m[2]))] = os.path.join(path, name)
     counts = sorted({n for _, n in found})
     if len(counts) != 1:
-        raise ValueError(f"{path}: shards of different counts {counts}; keep one --shard I/N "
-                         "set per cache directory")
+        raise ValueError(
+            f"{path}: shards of different counts {counts}; keep one --shard I/N "
+            "set per cache directory"
+        )
     count = counts[0]
     missing = [i for i in range(count) if (i, count) not in found]
     if missing:
-        raise FileNotFoundError(f"{path}: shard(s) {missing} of {count} missing (run `scenegen "
-                                f"prepare --shard I/{count}` for each)")
+        raise FileNotFoundError(
+            f"{path}: shard(s) {missing} of {count} missing (run `scenegen "
+            f"prepare --shard I/{count}` for each)"
+        )
     shards = [load_cache(found[(i, count)]) for i in range(count)]
     first = shards[0].meta
     for shard in shards[1:]:
         for field in SHARD_SHARED_FIELDS:
             if shard.meta.get(field) != first.get(field):
-                raise ValueError(f"{shard.path}/meta.json: field {field} differs from "
-                                 f"{shards[0].path}'s; prepare every shard with the same "
-                                 "--config, --set and source")
+                raise ValueError(
+                    f"{shard.path}/meta.json: field {field} differs from "
+                    f"{shards[0].path}'s; prepare every shard with the same "
+                    "--config, --set and source"
+                )
     meta = {
         **{k: first[k] for k in SHARD_SHARED_FIELDS},
         "scene_ids": [sid for c in shards for sid in c.scene_ids],
         "source": {k: v for k, v in first.get("source", {}).items() if k != "shard"},
-        "shards": [{"path": c.path, "scenes": len(c), "summary": c.meta.get("summary")}
-                   for c in shards],
+        "shards": [
+            {"path": c.path, "scenes": len(c), "summary": c.meta.get("summary")} for c in shards
+        ],
     }
     return stack_caches(shards, path, meta)
 
@@ -253,8 +283,9 @@ def stack_caches(caches: Sequence[Cache], path: str, meta: dict) -> Cache:
         path=path,
         meta=meta,
         maps=StackedMaps([c.maps for c in caches], offsets),
-        actors=Actors(**{k: cat(lambda c, k=k: _pad_slots(getattr(c.actors, k), slots))
-                         for k in ACTOR_FIELDS}),
+        actors=Actors(
+            **{k: cat(lambda c, k=k: _pad_slots(getattr(c.actors, k), slots)) for k in ACTOR_FIELDS}
+        ),
         ego_velocity=cat(lambda c: c.ego_velocity),
         ego_size=cat(lambda c: c.ego_size),
         city_from_ego=cat(lambda c: c.city_from_ego),
@@ -266,26 +297,37 @@ def check_compatible(caches: Iterable[Cache], cfg: Config) -> None:
     (grid_size, m_per_px, canvas_size) and the map channels the config reads, and all share
     one channel layout (so that their canvases stack and train together)."""
     caches = list(caches)
-    want = {"grid_size": cfg.grid_size, "m_per_px": cfg.m_per_px, "canvas_size": cfg.canvas_size}
+    want = {
+        "grid_size": cfg.grid.grid_size,
+        "m_per_px": cfg.grid.m_per_px,
+        "canvas_size": cfg.grid.canvas_size,
+    }
     hint = f"re-run prepare with --config {cfg.name} (and the same --set overrides)"
     for cache in caches:
         for field, value in want.items():
             got = cache.meta.get(field, cache.maps.shape[1] if field == "canvas_size" else None)
             if got != value:
-                raise ValueError(f"{cache.path}: field {field}: cache has {got}, config "
-                                 f"{cfg.name!r} wants {value}; {hint}")
+                raise ValueError(
+                    f"{cache.path}: field {field}: cache has {got}, config "
+                    f"{cfg.name!r} wants {value}; {hint}"
+                )
         channels = list(cache.meta.get("channels") or [])
-        missing = [c for c in cfg.map_channels if c not in channels]
+        missing = [c for c in cfg.grid.map_channels if c not in channels]
         if missing:
-            raise ValueError(f"{cache.path}: field channels: no map layer(s) {missing} that "
-                             f"config {cfg.name!r} reads (map_layers {list(cfg.map_layers)})")
+            raise ValueError(
+                f"{cache.path}: field channels: no map layer(s) {missing} that "
+                f"config {cfg.name!r} reads (map_layers {list(cfg.grid.map_layers)})"
+            )
         first = list(caches[0].meta.get("channels") or [])
         if channels != first:
-            raise ValueError(f"{cache.path}: field channels: {channels} differ from "
-                             f"{caches[0].path}'s {first}")
+            raise ValueError(
+                f"{cache.path}: field channels: {channels} differ from {caches[0].path}'s {first}"
+            )
         if cache.maps.shape[-1] != len(channels):
-            raise ValueError(f"{cache.path}/maps.npy: {cache.maps.shape[-1]} channels, "
-                             f"meta.json lists {len(channels)}")
+            raise ValueError(
+                f"{cache.path}/maps.npy: {cache.maps.shape[-1]} channels, "
+                f"meta.json lists {len(channels)}"
+            )
 
 
 def cached_scene(cache: Cache, index: int, cfg: Config) -> tuple[np.ndarray, Actors, Actors]:

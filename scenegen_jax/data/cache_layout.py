@@ -30,12 +30,12 @@ ACTOR_FIELDS = ("cls", "position", "size", "heading", "velocity", "valid")
 
 def cache_slots(cfg: Config) -> int:
     """Actor slots stored per scene: room for the in-region maximum under any rotation."""
-    return 2 * cfg.max_actors
+    return 2 * cfg.grid.max_actors
 
 
 def canvas_radius(cfg: Config) -> float:
     """Radius (m) of the disc that holds the grid under every rotation (its half diagonal)."""
-    return cfg.region_m / math.sqrt(2.0)
+    return cfg.grid.region_m / math.sqrt(2.0)
 
 
 SHARD_NAME = "shard-{:05d}-of-{:05d}"

@@ -73,7 +73,7 @@ def encode_frame(frame: Frame, cfg: Config) -> EncodedFrame:
     padded, inside, overflow = pad_frame_actors(frame, cfg, cache_slots(cfg))
     return EncodedFrame(
         scene_id=frame.scene_id,
-        map=rasterize_map(frame.map, cfg.canvas_size, cfg.m_per_px).astype(np.float16),
+        map=rasterize_map(frame.map, cfg.grid.canvas_size, cfg.grid.m_per_px).astype(np.float16),
         actors=padded,
         ego_velocity=np.asarray(frame.ego_velocity, np.float32),
         ego_size=np.asarray(frame.ego_size, np.float32),
@@ -135,7 +135,7 @@ class CacheWriter:
         os.makedirs(out_dir, exist_ok=True)
         self.out_dir, self.cfg, self.source = out_dir, cfg, source or {}
         self.summary = Summary()
-        size = cfg.canvas_size
+        size = cfg.grid.canvas_size
         self.maps = _NpyAppender(
             os.path.join(out_dir, "maps.npy"), (size, size, len(ALL_MAP_CHANNELS)), np.float16
         )
@@ -173,9 +173,9 @@ class CacheWriter:
         self.summary.dropped = dict(sorted(drops.items()))
         meta = {
             "version": CACHE_VERSION,
-            "grid_size": self.cfg.grid_size,
-            "m_per_px": self.cfg.m_per_px,
-            "canvas_size": self.cfg.canvas_size,
+            "grid_size": self.cfg.grid.grid_size,
+            "m_per_px": self.cfg.grid.m_per_px,
+            "canvas_size": self.cfg.grid.canvas_size,
             "slots": cache_slots(self.cfg),
             "channels": list(ALL_MAP_CHANNELS),
             "config": json.loads(self.cfg.to_json()),
@@ -224,7 +224,7 @@ def pad_frame_actors(frame: Frame, cfg: Config, slots: int) -> tuple[dict, np.nd
       `slots` that were dropped).
     """
     pos = np.asarray(frame.position, np.float64)
-    inside = np.asarray(in_region(pos, cfg))
+    inside = np.asarray(in_region(pos, cfg.grid))
     dist = np.linalg.norm(pos, axis=1)
     near = np.flatnonzero(dist <= canvas_radius(cfg))
     near = near[np.argsort(dist[near], kind="stable")]

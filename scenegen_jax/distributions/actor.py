@@ -10,7 +10,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from flax import struct
 
-from scenegen_jax.config import Config
+from scenegen_jax.config import ModelConfig
 from scenegen_jax.distributions import categorical, mixtures
 from scenegen_jax.distributions import params as P
 from scenegen_jax.scene import BICYCLIST, PEDESTRIAN, STOP, VEHICLE, Actors, bin_index
@@ -71,7 +71,7 @@ def actor_log_likelihood(
     head: HeadOutputs,
     target: Actors,
     is_stop: jnp.ndarray,
-    cfg: Config,
+    cfg: ModelConfig,
     hard_negatives: int | None = None,
 ) -> dict[str, jnp.ndarray]:
     """Per-term log-likelihoods of one target actor (or the stop token).
@@ -99,12 +99,12 @@ def actor_log_likelihood(
     cls = jnp.where(stop, STOP, target.cls)
     out = {"class": categorical.class_log_prob(head.class_logits, cls)}
 
-    bin_ = bin_index(target.position, cfg)
+    bin_ = bin_index(target.position, cfg.grid)
     if hard_negatives is None:
-        loc = categorical.location_log_prob(head.location_logits, bin_, cfg.bin_area)
+        loc = categorical.location_log_prob(head.location_logits, bin_, cfg.grid.bin_area)
     else:
         loc = categorical.hard_negative_log_prob(head.location_logits, bin_, hard_negatives)
-        loc = loc - jnp.log(cfg.bin_area)
+        loc = loc - jnp.log(cfg.grid.bin_area)
     out["location"] = loc
 
     # Unused target fields may be garbage (zeros for padding); feed safe values instead.
@@ -114,6 +114,6 @@ def actor_log_likelihood(
     out["box"] = mixtures.box_log_prob(head.box, size)
     out["heading"] = mixtures.heading_log_prob(head.heading, heading)
     out["velocity"] = mixtures.velocity_log_prob(
-        head.velocity, velocity, heading, is_relative_direction(target.cls), cfg.zero_speed
+        head.velocity, velocity, heading, is_relative_direction(target.cls), cfg.grid.zero_speed
     )
     return {name: jnp.where(masks[name], out[name], 0.0) for name in TERMS}

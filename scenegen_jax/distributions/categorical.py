@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 from jax.scipy import special
 
-from scenegen_jax.config import Config
+from scenegen_jax.config import GridConfig
 from scenegen_jax.scene import bin_center
 
 # Sampled positions stay this fraction of a pixel inside their bin, so float32 rounding
@@ -26,10 +26,10 @@ def uniforms(key: jax.Array, shape) -> jnp.ndarray:
     return jax.random.uniform(key, shape, minval=jnp.finfo(jnp.float32).tiny, maxval=1.0)
 
 
-def offsets_in_bin(u: jnp.ndarray, cfg: Config) -> jnp.ndarray:
+def offsets_in_bin(u: jnp.ndarray, grid: GridConfig) -> jnp.ndarray:
     """Offsets (x, y) [..., 2], m, from a bin's centre, uniform inside the bin, made from
     uniforms `u` [..., 2] in (0, 1); `_EDGE` of a pixel away from the bin's sides."""
-    return (_EDGE + (1.0 - 2.0 * _EDGE) * u - 0.5) * cfg.m_per_px
+    return (_EDGE + (1.0 - 2.0 * _EDGE) * u - 0.5) * grid.m_per_px
 
 
 def gumbel_argmax(u: jnp.ndarray, logits: jnp.ndarray) -> jnp.ndarray:
@@ -136,14 +136,14 @@ def sample_bins(key: jax.Array, log_probs: jnp.ndarray, count: int, width: int) 
 
 
 def sample_location(
-    key: jax.Array, logits: jnp.ndarray, cfg: Config, mask: jnp.ndarray | None = None
+    key: jax.Array, logits: jnp.ndarray, grid: GridConfig, mask: jnp.ndarray | None = None
 ) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
     """Draws a location bin from `logits` [H*W] (restricted to `mask`), then a position in it.
 
     Args:
       key: PRNG key.
       logits: [H*W] location logits, row-major bins.
-      cfg: config (grid_size, m_per_px).
+      grid: config (grid_size, m_per_px).
       mask: optional bool [H*W] of allowed bins (e.g. `ordering_mask`).
 
     Returns:
@@ -155,7 +155,7 @@ def sample_location(
         mask = jnp.ones((n_bins,), bool)
     k_bin, k_pos = jax.random.split(key)
     log_probs, any_valid = masked_log_softmax(logits, mask)
-    bin_ = sample_bins(k_bin, jnp.where(any_valid, log_probs, 0.0), 1, cfg.grid_size)[0]
+    bin_ = sample_bins(k_bin, jnp.where(any_valid, log_probs, 0.0), 1, grid.grid_size)[0]
     bin_ = jnp.where(any_valid, bin_, n_bins - 1)
-    offset = offsets_in_bin(uniforms(k_pos, (2,)), cfg)
-    return bin_, bin_center(bin_, cfg) + offset, any_valid
+    offset = offsets_in_bin(uniforms(k_pos, (2,)), grid)
+    return bin_, bin_center(bin_, grid) + offset, any_valid

@@ -5,7 +5,7 @@ no sidewalks), conditioned on a Frame-like input: an object with `map` (VectorMa
 frame: x forward, y left, m), `ego_size` ((width, length), m) and `ego_velocity` (m/s; kept
 for the common interface, neither heuristic uses it). The ego sits at the origin heading
 along +x and is an obstacle like any actor. Randomness comes from an explicit
-`numpy.random.Generator`; the output is a numpy `Actors` padded to `cfg.max_actors`, valid
+`numpy.random.Generator`; the output is a numpy `Actors` padded to `cfg.grid.max_actors`, valid
 slots first in canonical order, every centre inside the region of interest, no two boxes
 (the ego's included) overlapping. Lanes of type VEHICLE and BUS carry vehicles, BIKE lanes
 bicyclists.
@@ -173,12 +173,12 @@ class _Placement:
         return True
 
     def actors(self, rng: np.random.Generator, cfg: Config, velocity_heading=None) -> Actors:
-        """The accepted actors inside the region, at most cfg.max_actors (random subset)."""
+        """The accepted actors inside the region, at most cfg.grid.max_actors (random subset)."""
         center = np.array(self.center[1:]).reshape(-1, 2)
-        half = cfg.region_m / 2
+        half = cfg.grid.region_m / 2
         inside = np.flatnonzero(np.all((center >= -half) & (center < half), axis=-1))
-        if len(inside) > cfg.max_actors:
-            inside = np.sort(rng.choice(inside, cfg.max_actors, replace=False))
+        if len(inside) > cfg.grid.max_actors:
+            inside = np.sort(rng.choice(inside, cfg.grid.max_actors, replace=False))
         heading = np.array(self.heading[1:])[inside]
         vel_dir = heading if velocity_heading is None else np.asarray(velocity_heading)[inside]
         speed = np.array(self.speed)[inside]
@@ -193,8 +193,8 @@ class _Placement:
 
 
 def pad_actors(cls, position, size, heading, velocity, cfg: Config) -> Actors:
-    """numpy Actors padded to cfg.max_actors, valid first, in canonical order."""
-    n, slots = len(cls), cfg.max_actors
+    """numpy Actors padded to cfg.grid.max_actors, valid first, in canonical order."""
+    n, slots = len(cls), cfg.grid.max_actors
     if n > slots:
         raise ValueError(f"{n} actors do not fit in max_actors={slots}")
 
@@ -212,7 +212,7 @@ def pad_actors(cls, position, size, heading, velocity, cfg: Config) -> Actors:
         velocity=pad(velocity, (2,), np.float32),
         valid=np.arange(slots) < n,
     )
-    ordered = canonical_order(actors, cfg)
+    ordered = canonical_order(actors, cfg.grid)
     return Actors(*(np.asarray(getattr(ordered, f.name)) for f in dataclasses.fields(Actors)))
 
 
@@ -231,11 +231,11 @@ def prob_grammar(rng: np.random.Generator, frame: Any, cfg: Config) -> Actors:
       cfg: config (region_m, max_actors, grid for the canonical order).
 
     Returns:
-      numpy Actors [cfg.max_actors], vehicles and bicyclists only.
+      numpy Actors [cfg.grid.max_actors], vehicles and bicyclists only.
     """
-    graph = _lane_graph(frame.map, cfg.region_m)
+    graph = _lane_graph(frame.map, cfg.grid.region_m)
     placed = _Placement(frame.ego_size)
-    half = cfg.region_m / 2
+    half = cfg.grid.region_m / 2
     vel_heading: list[float] = []
     for i in rng.permutation(len(graph.paths)):
         path, cls = graph.paths[i], graph.cls[i]
@@ -400,9 +400,9 @@ def procedural(rng: np.random.Generator, frame: Any, cfg: Config, size_kde: Size
       size_kde: from `fit_size_kde` on training scenes.
 
     Returns:
-      numpy Actors [cfg.max_actors], vehicles and bicyclists only.
+      numpy Actors [cfg.grid.max_actors], vehicles and bicyclists only.
     """
-    graph = _lane_graph(frame.map, cfg.region_m)
+    graph = _lane_graph(frame.map, cfg.grid.region_m)
     placed = _Placement(frame.ego_size)
     for chain in _lane_chains(rng, graph):
         cls = graph.cls[chain[0]]

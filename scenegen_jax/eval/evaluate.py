@@ -32,7 +32,7 @@ def real_scenes(cache: Cache, indices, cfg: Config):
     """(maps [B,H,W,C], Scenes) of cached scenes, unrotated, as numpy."""
     maps, scenes = [], []
     for i in indices:
-        m, scene, _ = scene_from_cached(*cached_scene(cache, int(i), cfg), 0.0, cfg)
+        m, scene, _ = scene_from_cached(*cached_scene(cache, int(i), cfg), 0.0, cfg.grid)
         maps.append(np.asarray(m))
         scenes.append(jax.tree.map(np.asarray, scene))
     return np.stack(maps), scenes
@@ -78,7 +78,7 @@ def sample_baselines(cfg: Config, cache: Cache, indices, train_cache: Cache, see
         missing = [sid for sid, n in wanted.items() if frames[n] is None]
         if missing:
             raise ValueError(f"{spec.get('root')}: scenes {missing[:3]} not found in the source")
-    kde = baselines.fit_size_kde(train_cache.actors, region_m=cfg.region_m)
+    kde = baselines.fit_size_kde(train_cache.actors, region_m=cfg.grid.region_m)
     rng = np.random.default_rng(seed)
     return {
         "Prob. Grammar": [baselines.prob_grammar(rng, f, cfg) for f in frames],
@@ -104,7 +104,7 @@ def evaluate(params, cfg: Config, cache: Cache, train_cache: Cache, num_scenes: 
     generated = sample_baselines(cfg, cache, indices, train_cache, seed)
     generated["SceneGen"] = sample_scenegen(params, cfg, maps, scenes, seed, options=options)
     real = [s.actors for s in scenes]
-    mmd = {m: mmd_table(real, generated[m], region_m=cfg.region_m) for m in METHODS}
+    mmd = {m: mmd_table(real, generated[m], region_m=cfg.grid.region_m) for m in METHODS}
     canvases = [np.asarray(cached_scene(cache, int(i), cfg)[0]) for i in indices]
     realism = {m: realism_stats(canvases, generated[m], cfg) for m in METHODS}
     realism["real"] = realism_stats(canvases, real, cfg)

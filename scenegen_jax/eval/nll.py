@@ -18,7 +18,7 @@ from scenegen_jax.backend import (
     make_mesh,
     scoring_compiler_options,
 )
-from scenegen_jax.config import Config
+from scenegen_jax.config import Config, ModelConfig
 from scenegen_jax.data.cache import Cache
 from scenegen_jax.distributions import TERMS
 from scenegen_jax.likelihood.batch import Batch, check_batch, crop_batch, gather_batch, to_device
@@ -26,9 +26,9 @@ from scenegen_jax.likelihood.unroll import unroll_terms
 from scenegen_jax.scene import CLASS_NAMES, STOP
 
 
-def score_batch(params, batch: Batch, cfg: Config) -> dict:
+def score_batch(params, batch: Batch, cfg: ModelConfig) -> dict:
     """Per-step NLL terms of a batch: dict term -> [B, T] (nats), plus step class and mask."""
-    maps, scene = crop_batch(batch, jnp.zeros(batch.actors.cls.shape[0]), cfg)
+    maps, scene = crop_batch(batch, jnp.zeros(batch.actors.cls.shape[0]), cfg.grid)
     terms, step_valid, step_cls = unroll_terms(params, cfg, maps, scene, None,
                                                differentiated=False)
     out = {k: -v for k, v in terms.items()}
@@ -38,7 +38,7 @@ def score_batch(params, batch: Batch, cfg: Config) -> dict:
 
 
 @functools.lru_cache(maxsize=4)
-def _jitted_scorer(cfg: Config, mesh):
+def _jitted_scorer(cfg: ModelConfig, mesh):
     data = NamedSharding(mesh, P("data"))
     return jax.jit(
         lambda p, b: score_batch(p, b, cfg),
@@ -73,7 +73,7 @@ def score_cache(params, cache: Cache, cfg: Config, batch_size: int = 8, progress
     mesh = make_mesh(jax.local_devices())  # with several processes: this one's devices
     workers = default_workers() if workers is None else workers
     per_call = max(batch_size // workers, 1) * mesh.size
-    fn = _jitted_scorer(cfg.inference(), mesh)  # one program per model, not per run config
+    fn = _jitted_scorer(cfg.model, mesh)  # one program per model, whatever the training settings
     params = jax.device_put(params, NamedSharding(mesh, P()))
     n = scenes.stop
 
@@ -81,7 +81,7 @@ def score_cache(params, cache: Cache, cfg: Config, batch_size: int = 8, progress
         idx = np.arange(start, start + per_call)
         real = idx < n
         idx = np.where(real, idx, scenes.start)  # pad the last call, dropped below
-        host = gather_batch(cache, idx, cfg)
+        host = gather_batch(cache, idx, cfg.grid)
         check_batch(host, [cache.scene_name(int(i)) for i in idx])
         out = jax.device_get(fn(params, to_device(host, NamedSharding(mesh, P("data")))))
         return {k: v[real] for k, v in out.items()}

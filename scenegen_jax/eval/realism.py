@@ -22,13 +22,13 @@ def _vehicle_pixels(canvas: np.ndarray, actors, cfg: Config, radius_m: float):
     """(rows, cols, slots) of the canvas pixels under the valid vehicles within `radius_m` of
     the ego, and the number of such vehicles (some may lie beyond the canvas)."""
     s = canvas.shape[0]
-    half = s * cfg.m_per_px / 2
+    half = s * cfg.grid.m_per_px / 2
     pos = np.asarray(actors.position)
     sel = np.asarray(actors.valid) & (np.asarray(actors.cls) == VEHICLE)
     sel &= np.linalg.norm(pos, axis=1) < radius_m
     slots = np.flatnonzero(sel)
-    col = np.floor((pos[slots, 0] + half) / cfg.m_per_px).astype(int)
-    row = np.floor((half - pos[slots, 1]) / cfg.m_per_px).astype(int)
+    col = np.floor((pos[slots, 0] + half) / cfg.grid.m_per_px).astype(int)
+    row = np.floor((half - pos[slots, 1]) / cfg.grid.m_per_px).astype(int)
     ok = (row >= 0) & (row < s) & (col >= 0) & (col < s)
     return row[ok], col[ok], slots[ok], len(slots)
 

@@ -10,7 +10,7 @@ from typing import Any, NamedTuple
 import jax
 import numpy as np
 
-from scenegen_jax.config import Config
+from scenegen_jax.config import GridConfig
 from scenegen_jax.data.cache import Cache
 from scenegen_jax.data.cache_layout import ACTOR_FIELDS
 from scenegen_jax.data.union import CacheUnion
@@ -29,7 +29,7 @@ class Batch(NamedTuple):
     ego: Actors
 
 
-def gather_batch(cache: Cache | CacheUnion, indices: np.ndarray, cfg: Config) -> Batch:
+def gather_batch(cache: Cache | CacheUnion, indices: np.ndarray, grid: GridConfig) -> Batch:
     """Host arrays of the scenes `indices` (canvas kept in float16)."""
     indices = np.asarray(indices)
     actors = Actors(**{k: np.asarray(getattr(cache.actors, k)[indices]) for k in ACTOR_FIELDS})
@@ -90,13 +90,13 @@ def check_batch(batch: Batch, scene_ids: list[str]) -> None:
             raise ValueError(f"scene {scene_ids[i]}: field {name}: NaN or inf in the batch")
 
 
-@functools.partial(jax.jit, static_argnames="cfg")
-def crop_batch(batch: Batch, thetas, cfg: Config):
+@functools.partial(jax.jit, static_argnames="grid")
+def crop_batch(batch: Batch, thetas, grid: GridConfig):
     """Rotates each cached scene by thetas [B] rad and crops it: (maps [B,H,W,C], scene).
 
     Jitted: called outside a compiled program, its operations would each compile on their
     own."""
-    maps, scene, _ = jax.vmap(lambda c, a, e, t: scene_from_cached(c, a, e, t, cfg))(
+    maps, scene, _ = jax.vmap(lambda c, a, e, t: scene_from_cached(c, a, e, t, grid))(
         batch.canvas, batch.actors, batch.ego, thetas
     )
     return maps, scene

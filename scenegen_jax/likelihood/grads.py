@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 
 from scenegen_jax import backend
-from scenegen_jax.config import Config
+from scenegen_jax.config import ModelConfig
 from scenegen_jax.likelihood.unroll import (
     Scenes,
     join_windows,
@@ -30,7 +30,7 @@ from scenegen_jax.model.network import SceneGenNet
 from scenegen_jax.scene import Scene
 
 
-def map_gates_and_vjp(params, cfg: Config, maps):
+def map_gates_and_vjp(params, cfg: ModelConfig, maps):
     """The map share of layer 1's input gates [B, H, W, 4h] (computed once per scene) and its
     vjp with respect to the parameters."""
     net = SceneGenNet(cfg)
@@ -38,7 +38,7 @@ def map_gates_and_vjp(params, cfg: Config, maps):
                    params)
 
 
-def grads_prologue(params, cfg: Config, maps, scene: Scene, map_gates):
+def grads_prologue(params, cfg: ModelConfig, maps, scene: Scene, map_gates):
     """What every window of `unroll_terms_and_grads` reads, and the first window's
     accumulator: (scenes, ((zero ConvLSTM state, ego-only raster), zero parameter gradients,
     zero map-gate gradient))."""
@@ -48,7 +48,8 @@ def grads_prologue(params, cfg: Config, maps, scene: Scene, map_gates):
     return scenes, acc
 
 
-def window_grads(params, map_gates, scenes: Scenes, cfg: Config, scale, acc, index):
+def window_grads(params, map_gates, scenes: Scenes, cfg: ModelConfig, scale,
+                 hard_negatives: int, remat: bool | str, acc, index):
     """One window of `unroll_terms_and_grads`: (accumulator with this window's carry and
     gradients added, the window's terms). `index` is the window's number, static (a scene's
     first window then skips the zero state's recurrent convolutions) or traced."""
@@ -56,7 +57,7 @@ def window_grads(params, map_gates, scenes: Scenes, cfg: Config, scale, acc, ind
 
     def loss(p, gates):
         out, terms = window_terms(p, gates, carry, index * cfg.bptt_window, scenes, cfg,
-                                  cfg.hard_negatives)
+                                  hard_negatives, remat=remat)
         return -scale * sum(jnp.sum(v) for v in terms.values()), (out, terms)
 
     (_, (carry, terms)), (gp, gm) = jax.value_and_grad(loss, (0, 1), has_aux=True)(
@@ -71,14 +72,15 @@ def window_grads(params, map_gates, scenes: Scenes, cfg: Config, scale, acc, ind
     return (carry, jax.tree.map(jnp.add, g_params, gp), g_map + gm), terms
 
 
-def chunk_steps(cfg: Config) -> int:
+def chunk_steps(cfg: ModelConfig) -> int:
     """Steps of a window that one call of `chunk_forward` runs when a train step goes chunk by
     chunk (`train.step.SplitTrainStep`): the largest divisor of `cfg.bptt_window` up to
     `backend.SPLIT_CHUNK_STEPS`."""
     return max(d for d in range(1, backend.SPLIT_CHUNK_STEPS + 1) if cfg.bptt_window % d == 0)
 
 
-def chunk_forward(params, map_gates, scenes: Scenes, cfg: Config, scale, carry, start):
+def chunk_forward(params, map_gates, scenes: Scenes, cfg: ModelConfig, scale,
+                  hard_negatives: int, remat: bool | str, carry, start):
     """The `chunk_steps(cfg)` steps of a window from step `start` (traced) given the carried
     (ConvLSTM state, actor raster): (carry after them, their terms name -> [B, steps], vjp).
     `vjp(g_carry)` -> (parameter gradient, map-gate gradient, carry cotangent) of
@@ -89,7 +91,7 @@ def chunk_forward(params, map_gates, scenes: Scenes, cfg: Config, scale, carry, 
     sub = cfg.replace(bptt_window=chunk_steps(cfg))
 
     def loss(p, gates, c):
-        out, terms = window_terms(p, gates, c, start, scenes, sub, cfg.hard_negatives)
+        out, terms = window_terms(p, gates, c, start, scenes, sub, hard_negatives, remat=remat)
         return (out, -scale * sum(jnp.sum(v) for v in terms.values())), terms
 
     (carry, _), vjp, terms = jax.vjp(loss, params, map_gates, carry, has_aux=True)
@@ -113,14 +115,15 @@ def grads_epilogue(map_vjp, scenes: Scenes, acc, terms: dict):
     return join_windows(terms, scenes), jax.tree.map(jnp.add, g_params, g_from_map)
 
 
-def unroll_terms_and_grads(params, cfg: Config, maps, scene: Scene, scale):
+def unroll_terms_and_grads(params, cfg: ModelConfig, maps, scene: Scene, scale,
+                           hard_negatives: int, remat: bool | str = False):
     """`unroll_terms` with the training normaliser, and the gradient of
     -scale * (sum of all terms) with respect to params, computed window by window.
 
     No gradient crosses a window boundary (truncated BPTT), so each window's backward pass
     runs right after its forward pass (`window_grads`), in a `lax.scan` over the windows: on
     an accelerator the train step holds one window's activations and compiles one window,
-    whatever `cfg.max_actors` (the `paper` preset has 6 windows; on CPU the windows are
+    whatever `cfg.grid.max_actors` (the `paper` preset has 6 windows; on CPU the windows are
     unrolled, `scan_windows`). The map share of layer 1's input gates is still computed
     once per scene; its gradient is summed over the windows and taken through the map
     convolution once. Equal to `jax.grad` of that sum through `unroll_terms` (tested).
@@ -129,6 +132,7 @@ def unroll_terms_and_grads(params, cfg: Config, maps, scene: Scene, scale):
     """
     map_gates, map_vjp = map_gates_and_vjp(params, cfg, maps)
     scenes, acc = grads_prologue(params, cfg, maps, scene, map_gates)
-    body = functools.partial(window_grads, params, map_gates, scenes, cfg, scale)
+    body = functools.partial(window_grads, params, map_gates, scenes, cfg, scale,
+                             hard_negatives, remat)
     acc, terms = scan_windows(body, acc, num_windows(cfg))
     return grads_epilogue(map_vjp, scenes, acc, terms)

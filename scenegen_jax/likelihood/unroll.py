@@ -13,7 +13,7 @@ CPU, a `lax.scan` (one window compiled) on accelerators. The train step takes ea
 gradient right after that window (`likelihood.grads`), so it holds one window's activations.
 An unroll without a gradient (the scorer) has nothing to truncate: its steps run as one
 window, so that one compiled loop serves the whole scene (it compiles faster than a loop
-over windows). Every window always runs, so `cfg.max_actors` should fit the data
+over windows). Every window always runs, so `cfg.grid.max_actors` should fit the data
 (overflow is counted).
 
 Inside a window (the fast path; `_unrolled_steps` in the CPU train step, elsewhere
@@ -31,7 +31,8 @@ Inside a window (the fast path; `_unrolled_steps` in the CPU train step, elsewhe
     single window), a scene's first step skips the recurrent convolutions of the zero
     initial state;
   * the densities (small) run once, batched over all steps of the window;
-  * with `cfg.remat` (true; "auto" is made true or false by `train.step.resolve_remat`
+  * with `remat` (`TrainConfig.remat`: true; "auto" is made true or false by
+    `train.step.resolve_remat`
     before a train step is built, and counts as true unresolved), a chunk's backbone and
     heads are recomputed in the backward pass instead of stored (`recompute_in_backward`),
     each one chunk late so that the recomputation overlaps the next chunk's recurrence: the
@@ -50,16 +51,16 @@ import jax
 import jax.numpy as jnp
 
 from scenegen_jax import backend
-from scenegen_jax.config import Config
+from scenegen_jax.config import ModelConfig
 from scenegen_jax.distributions import HeadOutputs, actor_log_likelihood
 from scenegen_jax.model.network import SceneGenNet, map_at_bins
 from scenegen_jax.raster.actors import draw_actor, empty_actor_raster
 from scenegen_jax.scene import STOP, Actors, Scene, bin_index
 
 
-def num_windows(cfg: Config) -> int:
+def num_windows(cfg: ModelConfig) -> int:
     """Windows covering the max_actors + 1 steps (the last one the stop token)."""
-    return math.ceil((cfg.max_actors + 1) / cfg.bptt_window)
+    return math.ceil((cfg.grid.max_actors + 1) / cfg.bptt_window)
 
 
 def _pad_slots(actors: Actors, n: int) -> Actors:
@@ -88,9 +89,9 @@ def _step_targets(actors: Actors, n_actors, complete, t):
 HEAD_CHUNK_BYTES = 2 * 2**20
 
 
-def head_chunk(cfg: Config, batch: int) -> int:
+def head_chunk(cfg: ModelConfig, batch: int) -> int:
     """Steps whose backbone and heads run as one batch (1 at the paper's grid)."""
-    per_step = batch * cfg.grid_size * cfg.grid_size * cfg.hidden * 4
+    per_step = batch * cfg.grid.grid_size * cfg.grid.grid_size * cfg.hidden * 4
     return max(1, min(cfg.bptt_window, HEAD_CHUNK_BYTES // per_step))
 
 
@@ -144,8 +145,16 @@ def step_heads(net: SceneGenNet, params, f, cls, bins):
     return apply(SceneGenNet.class_logits, f), location, feat
 
 
-def head_terms(net: SceneGenNet, params, heads, targets: Actors, is_stop, cfg: Config,
-               hard_negatives, map_feat):
+def head_terms(
+    net: SceneGenNet,
+    params,
+    heads,
+    targets: Actors,
+    is_stop,
+    cfg: ModelConfig,
+    hard_negatives,
+    map_feat,
+):
     """Per-term log-likelihoods of targets [M] from `step_heads` outputs (any leading M) and
     the map channels at the targets' bins, map_feat [M, Cm] (`attribute_map_input`)."""
     class_logits, location_logits, feat = heads
@@ -193,16 +202,16 @@ class Scenes(NamedTuple):
     state0: Any
 
 
-def prepare_scenes(params, cfg: Config, maps, scene: Scene) -> Scenes:
+def prepare_scenes(params, cfg: ModelConfig, maps, scene: Scene) -> Scenes:
     net = SceneGenNet(cfg)
     b = scene.ego.cls.shape[0]
     raster0 = _draw(cfg)(
-        jnp.broadcast_to(empty_actor_raster(cfg), (b, *empty_actor_raster(cfg).shape)),
+        jnp.broadcast_to(empty_actor_raster(cfg.grid), (b, *empty_actor_raster(cfg.grid).shape)),
         scene.ego,
         jnp.ones((b,), bool),
     )
     actors = _pad_slots(scene.actors, num_windows(cfg) * cfg.bptt_window)
-    bins = bin_index(actors.position, cfg)
+    bins = bin_index(actors.position, cfg.grid)
     return Scenes(
         actors=actors,
         n_actors=jnp.sum(scene.actors.valid, axis=1),
@@ -214,8 +223,17 @@ def prepare_scenes(params, cfg: Config, maps, scene: Scene) -> Scenes:
     )
 
 
-def window_terms(params, map_gates, carry, start, scenes: Scenes, cfg: Config,
-                 hard_negatives: int | None, differentiated: bool = True):
+def window_terms(
+    params,
+    map_gates,
+    carry,
+    start,
+    scenes: Scenes,
+    cfg: ModelConfig,
+    hard_negatives: int | None,
+    differentiated: bool = True,
+    remat: bool | str = False,
+):
     """One window: the `cfg.bptt_window` steps from step `start` (may be traced), given the
     carried (ConvLSTM state, actor raster); returns (carry, terms name -> [B, W], zero at
     padding steps). The carry is an input like any other: callers cut its gradient. At a
@@ -231,19 +249,29 @@ def window_terms(params, map_gates, carry, start, scenes: Scenes, cfg: Config,
     win = jax.tree.map(lambda x: jax.lax.dynamic_slice_in_dim(x, start, w, axis=1), scenes.actors)
     prev_bins = jax.lax.dynamic_slice_in_dim(scenes.prev_bins, start, w, axis=1)
     map_feat = jax.lax.dynamic_slice_in_dim(scenes.map_feat, start, w, axis=1)
-    targets, is_stop, valid = _step_targets(win, scenes.n_actors, scenes.complete,
-                                           start + jnp.arange(w))
-    bins = bin_index(targets.position, cfg)  # [B, W]
+    targets, is_stop, valid = _step_targets(
+        win, scenes.n_actors, scenes.complete, start + jnp.arange(w)
+    )
+    bins = bin_index(targets.position, cfg.grid)  # [B, W]
     steps = _scanned_steps if backend.compiled_step_loop(differentiated) else _unrolled_steps
     heads, state, raster_end = steps(
-        net, params, map_gates, state, raster, win, targets.cls, bins, prev_bins, cfg
+        net, params, map_gates, state, raster, win, targets.cls, bins, prev_bins, cfg, remat
     )
+
     # The densities are cheap and small: one batched call over the window's steps.
     def step_major(x):  # [B, W, ...] -> [W * B, ...]
         return jnp.swapaxes(x, 0, 1).reshape(w * b, *x.shape[2:])
 
-    terms = head_terms(net, params, heads, jax.tree.map(step_major, targets),
-                       step_major(is_stop), cfg, hard_negatives, step_major(map_feat))
+    terms = head_terms(
+        net,
+        params,
+        heads,
+        jax.tree.map(step_major, targets),
+        step_major(is_stop),
+        cfg,
+        hard_negatives,
+        step_major(map_feat),
+    )
     terms = {k: jnp.swapaxes(v.reshape(w, b), 0, 1) * valid for k, v in terms.items()}
     return (state, raster_end), terms
 
@@ -256,14 +284,15 @@ def _chunk_heads(net: SceneGenNet):
     return chunk_heads
 
 
-def _draw(cfg: Config):
-    return jax.vmap(functools.partial(draw_actor, cfg=cfg))
+def _draw(cfg: ModelConfig):
+    return jax.vmap(functools.partial(draw_actor, grid=cfg.grid))
 
 
-def _unrolled_steps(net, params, map_gates, state, raster, win: Actors, cls, bins, prev_bins,
-                    cfg):
+def _unrolled_steps(
+    net, params, map_gates, state, raster, win: Actors, cls, bins, prev_bins, cfg, remat
+):
     """The window's steps unrolled at trace time, backbone and heads on chunks of steps
-    (`head_chunk`), with `cfg.remat` each chunk recomputed in the backward pass one chunk
+    (`head_chunk`), with `remat` each chunk recomputed in the backward pass one chunk
     late. Returns (heads [W * B, ...] step-major, state, raster after the window)."""
 
     apply = _bound(net, params)
@@ -287,7 +316,10 @@ def _unrolled_steps(net, params, map_gates, state, raster, win: Actors, cls, bin
             if j > 0:
                 actor_gates = apply(
                     SceneGenNet.next_actor_gates,
-                    actor_gates, rasters[j - 1], rasters[j], win.position[:, j - 1],
+                    actor_gates,
+                    rasters[j - 1],
+                    rasters[j],
+                    win.position[:, j - 1],
                 )
             order = apply(SceneGenNet.order_gates, prev_bins[:, j])
             state, h2 = apply(SceneGenNet.recur, state, actor_gates + map_gates + order)
@@ -295,7 +327,7 @@ def _unrolled_steps(net, params, map_gates, state, raster, win: Actors, cls, bin
         at_cls = jnp.swapaxes(cls[:, c0 : c0 + chunk], 0, 1).reshape(-1)
         at = jnp.swapaxes(bins[:, c0 : c0 + chunk], 0, 1).reshape(-1)
         args = (jnp.concatenate(h2s), at_cls, at)  # [n * B, ...] step-major
-        if not cfg.remat:
+        if not remat:
             heads.append(chunk_heads(params, *args))
             continue
         # One chunk late: the state passed through is the one after the next chunk, so
@@ -311,18 +343,19 @@ def _unrolled_steps(net, params, map_gates, state, raster, win: Actors, cls, bin
     return heads, state, raster_end
 
 
-def _scanned_steps(net, params, map_gates, state, raster, win: Actors, cls, bins, prev_bins,
-                   cfg):
+def _scanned_steps(
+    net, params, map_gates, state, raster, win: Actors, cls, bins, prev_bins, cfg, remat
+):
     """`_unrolled_steps` as a `lax.scan` over the window's steps 1..W-1 (step 0, which may
     start from the zero state, runs before it): `backend.STEP_LOOP_UNROLL` steps are compiled,
     whatever the window.
     Each iteration draws the previous step's actor, updates the actor gates locally, steps
     the ConvLSTM and runs the backbone and heads of that one step (recomputed in the
-    backward pass with `cfg.remat`: `jax.checkpoint` inside a loop body holds)."""
+    backward pass with `remat`: `jax.checkpoint` inside a loop body holds)."""
 
     apply = _bound(net, params)
     heads_of = _chunk_heads(net)
-    if cfg.remat:
+    if remat:
         heads_of = jax.checkpoint(heads_of, prevent_cse=False)
     b = map_gates.shape[0]
     draw = _draw(cfg)
@@ -344,7 +377,8 @@ def _scanned_steps(net, params, map_gates, state, raster, win: Actors, cls, bins
     steps_major = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), (win, cls, bins, prev_bins))
     drawn = jax.tree.map(lambda x: x[:-1], steps_major[0])
     (state, _, raster), rest = jax.lax.scan(
-        step, (state, gates, raster),
+        step,
+        (state, gates, raster),
         (drawn, steps_major[1][1:], steps_major[2][1:], steps_major[3][1:]),
         unroll=backend.STEP_LOOP_UNROLL,
     )
@@ -359,13 +393,21 @@ def _scanned_steps(net, params, map_gates, state, raster, win: Actors, cls, bins
 def join_windows(terms: dict, scenes: Scenes):
     """terms name -> [windows, B, W] as (terms [B, T], step_valid [B, T], step_cls [B, T])."""
     terms = {k: jnp.concatenate(list(v), axis=1) for k, v in terms.items()}
-    is_stop, step_valid = _stop_and_valid(scenes.n_actors, scenes.complete,
-                                          jnp.arange(scenes.actors.cls.shape[1]))
+    is_stop, step_valid = _stop_and_valid(
+        scenes.n_actors, scenes.complete, jnp.arange(scenes.actors.cls.shape[1])
+    )
     return terms, step_valid, jnp.where(is_stop, STOP, scenes.actors.cls)
 
 
-def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | None,
-                 differentiated: bool = True):
+def unroll_terms(
+    params,
+    cfg: ModelConfig,
+    maps,
+    scene: Scene,
+    hard_negatives: int | None,
+    differentiated: bool = True,
+    remat: bool | str = False,
+):
     """Log-likelihood terms of every step of a batch of scenes, teacher forced.
 
     Args:
@@ -377,6 +419,7 @@ def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | 
       differentiated: whether the caller takes a gradient through it: the steps' loop form
         depends on it (`backend.compiled_step_loop`), and without a gradient every step runs
         in one window; the values do not.
+      remat: recompute the backbone and heads in the backward pass (`TrainConfig.remat`).
     Returns:
       (terms: dict name -> [B, T] log-likelihoods, zero at padding steps; step_valid [B, T];
       step_cls [B, T] with STOP at the stop step), T = windows * cfg.bptt_window.
@@ -388,8 +431,17 @@ def unroll_terms(params, cfg: Config, maps, scene: Scene, hard_negatives: int | 
 
     def window(carry, index):
         carry = jax.lax.stop_gradient(carry)  # truncated BPTT: no gradient across windows
-        return window_terms(params, map_gates, carry, index * cfg.bptt_window, scenes, cfg,
-                            hard_negatives, differentiated)
+        return window_terms(
+            params,
+            map_gates,
+            carry,
+            index * cfg.bptt_window,
+            scenes,
+            cfg,
+            hard_negatives,
+            differentiated,
+            remat,
+        )
 
     _, terms = scan_windows(window, (scenes.state0, scenes.raster0), num_windows(cfg))
     return join_windows(terms, scenes)

@@ -20,7 +20,7 @@ import numpy as np
 from flax import errors
 
 from scenegen_jax.backend import compiled_init
-from scenegen_jax.config import Config
+from scenegen_jax.config import ModelConfig
 from scenegen_jax.distributions import params as P
 from scenegen_jax.model.convlstm import lstm_gates
 from scenegen_jax.model.initializers import (
@@ -62,7 +62,7 @@ def orientation_sectors(cos, sin, k: int):
 class SceneGenNet(nn.Module):
     """The network. Parameters are a plain PyTree (Linen), shapes from the config."""
 
-    cfg: Config
+    cfg: ModelConfig
 
     def setup(self):
         # A key only where the parameters are created (`apply` reads them). The parameters
@@ -77,7 +77,7 @@ class SceneGenNet(nn.Module):
         """The two ConvLSTM layers' weights: layer 1's input convolution in shares (map,
         coordinates, canonical order, orientation sectors, actors) and its recurrence."""
         cfg = self.cfg
-        h, cm = cfg.hidden, len(cfg.map_channels)
+        h, cm = cfg.hidden, len(cfg.grid.map_channels)
         conv_init = draws.lecun_normal()
 
         def lstm_bias(key, shape, dtype=jnp.float32):
@@ -136,7 +136,7 @@ class SceneGenNet(nn.Module):
     def _setup_attribute_heads(self, draws: InitialDraws):
         """The per-class attribute MLPs and, with the options, their map weights."""
         cfg = self.cfg
-        n, h, cm = NUM_CLASSES, cfg.hidden, len(cfg.map_channels)
+        n, h, cm = NUM_CLASSES, cfg.hidden, len(cfg.grid.map_channels)
         sizes = attribute_sizes(cfg.num_mixtures)
         rows = attribute_bias_rows(cfg.num_mixtures)
         if cfg.separate_attribute_mlps:
@@ -199,12 +199,12 @@ class SceneGenNet(nn.Module):
         sectors' share with `orientation_bins`, and the pixel coordinates' share with
         `coord_channels`): [B,H,W,Cm] -> [B,H,W,4h]."""
         b, hh, ww, _ = map_raster.shape
-        if not self.cfg.map_channels:
+        if not self.cfg.grid.map_channels:
             gates = jnp.broadcast_to(self.lstm1_b, (b, hh, ww, 4 * self.cfg.hidden))
         else:
             gates = conv(map_raster, self.lstm1_map, self.lstm1_b)
         if self.cfg.orientation_bins:
-            ic, is_ = (self.cfg.map_channels.index(c) for c in ORIENTATION_CHANNELS)
+            ic, is_ = (self.cfg.grid.map_channels.index(c) for c in ORIENTATION_CHANNELS)
             sectors = orientation_sectors(map_raster[..., ic], map_raster[..., is_],
                                           self.cfg.orientation_bins)
             gates = gates + conv(sectors.astype(gates.dtype), self.lstm1_orient)
@@ -221,7 +221,7 @@ class SceneGenNet(nn.Module):
         first step), 0 before. [B, H, W, 4h], or the scalar 0 without the channel."""
         if not self.cfg.order_channel:
             return jnp.zeros((), jnp.float32)
-        n = self.cfg.grid_size
+        n = self.cfg.grid.grid_size
         allowed = jnp.arange(n * n)[None] >= jnp.asarray(prev_bin)[:, None]
         return conv(allowed.reshape(-1, n, n, 1).astype(jnp.float32), self.lstm1_order)
 
@@ -246,10 +246,10 @@ class SceneGenNet(nn.Module):
         """
         cfg = self.cfg
         margin = self.lstm1_act.shape[0] // 2
-        p = window_size(cfg) + 2 * margin
-        if p >= cfg.grid_size:
+        p = window_size(cfg.grid) + 2 * margin
+        if p >= cfg.grid.grid_size:
             return self.actor_gates(after)
-        row0, col0 = window_origin(position, p, cfg)
+        row0, col0 = window_origin(position, p, cfg.grid)
 
         def window(x, r, c):
             return jax.lax.dynamic_slice(x, (r, c, 0), (p, p, x.shape[-1]))
@@ -284,7 +284,7 @@ class SceneGenNet(nn.Module):
     def initial_state(self, batch: int):
         """Zero ConvLSTM state for `batch` scenes."""
         cfg = self.cfg
-        z = jnp.zeros((batch, cfg.grid_size, cfg.grid_size, cfg.hidden), jnp.float32)
+        z = jnp.zeros((batch, cfg.grid.grid_size, cfg.grid.grid_size, cfg.hidden), jnp.float32)
         return ((z, z), (z, z))
 
     # ------------------------------------------------------------------ heads
@@ -379,13 +379,13 @@ class SceneGenNet(nn.Module):
                 self.attributes(feat, cls, map_feat))
 
 
-def nearest_lane_direction(map_feat, cfg: Config):
+def nearest_lane_direction(map_feat, cfg: ModelConfig):
     """The nearest lane's direction at the bins as a unit (cos, sin), each [...], from the map
     channels there, map_feat [..., Cm] (`nearest_lane` layers); (1, 0), no turn, where no
     centreline is within `raster.map.NEAREST_LANE_MAX_M` (the channels are 0 there; a
     length under 1/2, as where a rotated crop blends a direction with 0, counts as none)."""
-    i = cfg.map_channels.index(NEAREST_LANE_CHANNELS[0])
-    j = cfg.map_channels.index(NEAREST_LANE_CHANNELS[1])
+    i = cfg.grid.map_channels.index(NEAREST_LANE_CHANNELS[0])
+    j = cfg.grid.map_channels.index(NEAREST_LANE_CHANNELS[1])
     c, s = map_feat[..., i], map_feat[..., j]
     n = jnp.hypot(c, s)
     some = n >= 0.5
@@ -401,7 +401,7 @@ def map_at_bins(map_raster, bins):
     return flat[idx, bins]
 
 
-def init_params(cfg: Config, key):
+def init_params(cfg: ModelConfig, key):
     """Initial parameters (a plain PyTree) for `cfg`.
 
     Compiled: flax creates the parameters by running one step of the network, which, run
@@ -410,8 +410,8 @@ def init_params(cfg: Config, key):
     whose random values come from one PRNG call per 2^20 values (`InitialDraws`), so that
     the program compiles few PRNG kernels."""
     net = SceneGenNet(cfg)
-    h = cfg.grid_size
-    m = jnp.zeros((1, h, h, len(cfg.map_channels)), jnp.float32)
+    h = cfg.grid.grid_size
+    m = jnp.zeros((1, h, h, len(cfg.grid.map_channels)), jnp.float32)
     a = jnp.zeros((1, h, h, NUM_ACTOR_CHANNELS), jnp.float32)
     z = jnp.zeros((1,), jnp.int32)
 

@@ -150,7 +150,7 @@ def load_pretrained(name_or_dir: str) -> tuple[Config, dict, dict]:
         raise ValueError(
             f"{paths[PARAMS_FILE]}: sha256 differs from {MANIFEST_FILE}'s (damaged or edited)"
         )
-    template = jax.eval_shape(lambda: init_params(cfg, jax.random.key(0)))
+    template = jax.eval_shape(lambda: init_params(cfg.model, jax.random.key(0)))
     try:
         raw = serialization.msgpack_restore(data)
     except Exception as e:  # msgpack raises several types for malformed bytes

@@ -7,7 +7,7 @@ Channels (`ACTOR_CHANNELS`): occupancy of the ego, vehicles, pedestrians and bic
 (fractional box coverage in [0, 1]), then motion filled in the boxes: speed (m/s), cos/sin
 of the velocity direction and cos/sin of the heading, all in the ego frame of the raster.
 Motion is undefined for some actors and then encoded as (0, 0): the velocity direction at
-speeds <= `cfg.zero_speed` (the v = 0 point mass) and the heading of pedestrians.
+speeds <= `grid.zero_speed` (the v = 0 point mass) and the heading of pedestrians.
 
 Coverage is supersampled: each pixel holds s x s sub-cells, and each sub-cell's overlap with
 the box is taken in the box frame as the product of two 1-D interval overlaps of a
@@ -29,7 +29,7 @@ import math
 import jax.numpy as jnp
 from jax import lax
 
-from scenegen_jax.config import Config
+from scenegen_jax.config import GridConfig
 from scenegen_jax.scene import PEDESTRIAN, Actors, pixel_of, tree_take
 
 ACTOR_CHANNELS = (
@@ -50,15 +50,15 @@ DEFAULT_SAMPLES = 4
 DEFAULT_MAX_BOX_M = 20.0
 
 
-def window_size(cfg: Config, max_box_m: float = DEFAULT_MAX_BOX_M) -> int:
+def window_size(grid: GridConfig, max_box_m: float = DEFAULT_MAX_BOX_M) -> int:
     """Side P (px, static) of the square window in which one box is drawn; H if P >= H.
 
     Args:
-      cfg: config (grid_size, m_per_px).
+      grid: config (grid_size, m_per_px).
       max_box_m: largest box diagonal, m, drawn without clipping (a 2 px margin is added).
     """
-    radius = math.ceil(max_box_m / (2.0 * cfg.m_per_px)) + 1
-    return min(2 * radius + 1, cfg.grid_size)
+    radius = math.ceil(max_box_m / (2.0 * grid.m_per_px)) + 1
+    return min(2 * radius + 1, grid.grid_size)
 
 
 def _overlap_1d(u: jnp.ndarray, half_len: jnp.ndarray, d: float) -> jnp.ndarray:
@@ -68,11 +68,11 @@ def _overlap_1d(u: jnp.ndarray, half_len: jnp.ndarray, d: float) -> jnp.ndarray:
     return jnp.clip(hi - lo, 0.0, None) / d
 
 
-def window_origin(center: jnp.ndarray, p: int, cfg: Config) -> tuple[jnp.ndarray, jnp.ndarray]:
+def window_origin(center: jnp.ndarray, p: int, grid: GridConfig) -> tuple[jnp.ndarray, jnp.ndarray]:
     """(row0, col0) int32: top-left pixel of the p x p window around `center` [..., 2] (m),
     shifted to lie inside the grid (p <= H)."""
-    h = cfg.grid_size
-    row, col = pixel_of(jnp.asarray(center, jnp.float32), cfg)
+    h = grid.grid_size
+    row, col = pixel_of(jnp.asarray(center, jnp.float32), grid)
     return (jnp.clip(row - p // 2, 0, h - p).astype(jnp.int32),
             jnp.clip(col - p // 2, 0, h - p).astype(jnp.int32))
 
@@ -81,7 +81,7 @@ def box_coverage_window(
     center: jnp.ndarray,
     size: jnp.ndarray,
     heading: jnp.ndarray,
-    cfg: Config,
+    grid: GridConfig,
     samples: int = DEFAULT_SAMPLES,
     max_box_m: float = DEFAULT_MAX_BOX_M,
 ) -> tuple[jnp.ndarray, tuple[jnp.ndarray, jnp.ndarray]]:
@@ -91,22 +91,22 @@ def box_coverage_window(
       center: [2] (x, y) m.
       size: [2] (width, length) m; length lies along the heading.
       heading: [] rad.
-      cfg: config (grid).
+      grid: config (grid).
       samples: s, sub-cells per pixel side (static).
       max_box_m: see `window_size`.
 
     Returns:
       coverage float32 [P, P] in [0, 1], and (row0, col0) int32: the window's top-left pixel
-      in the grid (the window lies inside the grid; P = `window_size(cfg, max_box_m)`).
+      in the grid (the window lies inside the grid; P = `window_size(grid, max_box_m)`).
     """
-    p = window_size(cfg, max_box_m)
-    mpp = cfg.m_per_px
-    half_region = cfg.region_m / 2
+    p = window_size(grid, max_box_m)
+    mpp = grid.m_per_px
+    half_region = grid.region_m / 2
     center = jnp.asarray(center, jnp.float32)
     size = jnp.asarray(size, jnp.float32)
     heading = jnp.asarray(heading, jnp.float32)
 
-    row0, col0 = window_origin(center, p, cfg)
+    row0, col0 = window_origin(center, p, grid)
 
     # Sub-cell centres along one axis, in pixel units from the window's first pixel edge.
     sub = (jnp.arange(p * samples, dtype=jnp.float32) + 0.5) / samples
@@ -126,7 +126,7 @@ def box_coverage(
     center: jnp.ndarray,
     size: jnp.ndarray,
     heading: jnp.ndarray,
-    cfg: Config,
+    grid: GridConfig,
     samples: int = DEFAULT_SAMPLES,
     max_box_m: float = DEFAULT_MAX_BOX_M,
 ) -> jnp.ndarray:
@@ -136,32 +136,32 @@ def box_coverage(
       center: [2] (x, y) m.
       size: [2] (width, length) m; length lies along the heading.
       heading: [] rad.
-      cfg: config (grid).
+      grid: config (grid).
       samples: s, sub-cells per pixel side (static).
       max_box_m: see `window_size`.
     """
-    cov, (row0, col0) = box_coverage_window(center, size, heading, cfg, samples, max_box_m)
-    h = cfg.grid_size
+    cov, (row0, col0) = box_coverage_window(center, size, heading, grid, samples, max_box_m)
+    h = grid.grid_size
     return lax.dynamic_update_slice(jnp.zeros((h, h), jnp.float32), cov, (row0, col0))
 
 
-def actor_footprint(actor: Actors, cfg: Config) -> tuple[jnp.ndarray, jnp.ndarray]:
+def actor_footprint(actor: Actors, grid: GridConfig) -> tuple[jnp.ndarray, jnp.ndarray]:
     """(size [2] m, heading [] rad) drawn for one actor: pedestrians get the nominal square."""
     is_ped = actor.cls == PEDESTRIAN
-    ped = jnp.full((2,), cfg.pedestrian_size_m, jnp.float32)
+    ped = jnp.full((2,), grid.pedestrian_size_m, jnp.float32)
     size = jnp.where(is_ped, ped, jnp.asarray(actor.size, jnp.float32))
     heading = jnp.where(is_ped, 0.0, jnp.asarray(actor.heading, jnp.float32))
     return size, heading
 
 
-def actor_motion(actor: Actors, cfg: Config) -> jnp.ndarray:
+def actor_motion(actor: Actors, grid: GridConfig) -> jnp.ndarray:
     """float32 [5]: speed m/s, cos/sin of velocity direction, cos/sin of heading.
 
-    The direction is (0, 0) at speeds <= cfg.zero_speed, the heading (0, 0) for pedestrians.
+    The direction is (0, 0) at speeds <= grid.zero_speed, the heading (0, 0) for pedestrians.
     """
     vel = jnp.asarray(actor.velocity, jnp.float32)
     speed = jnp.sqrt(jnp.sum(vel**2))
-    moving = speed > cfg.zero_speed
+    moving = speed > grid.zero_speed
     direction = jnp.where(moving, vel / jnp.where(moving, speed, 1.0), 0.0)
     heading = jnp.asarray(actor.heading, jnp.float32)
     biternion = jnp.stack([jnp.cos(heading), jnp.sin(heading)])
@@ -173,7 +173,7 @@ def draw_actor(
     raster: jnp.ndarray,
     actor: Actors,
     is_ego: bool | jnp.ndarray,
-    cfg: Config,
+    grid: GridConfig,
     samples: int = DEFAULT_SAMPLES,
     max_box_m: float = DEFAULT_MAX_BOX_M,
 ) -> jnp.ndarray:
@@ -186,15 +186,15 @@ def draw_actor(
       raster: float32 [H, W, 9] (`ACTOR_CHANNELS`).
       actor: one actor (no leading axis).
       is_ego: draw into the ego occupancy channel instead of the class's.
-      cfg: config (grid, pedestrian_size_m, zero_speed).
+      grid: config (grid, pedestrian_size_m, zero_speed).
       samples: s, sub-cells per pixel side (static).
       max_box_m: see `window_size`.
 
     Returns:
       float32 [H, W, 9].
     """
-    size, heading = actor_footprint(actor, cfg)
-    cov, (row0, col0) = box_coverage_window(actor.position, size, heading, cfg, samples, max_box_m)
+    size, heading = actor_footprint(actor, grid)
+    cov, (row0, col0) = box_coverage_window(actor.position, size, heading, grid, samples, max_box_m)
     p = cov.shape[0]
     old = lax.dynamic_slice(raster, (row0, col0, 0), (p, p, NUM_ACTOR_CHANNELS))
 
@@ -202,7 +202,7 @@ def draw_actor(
     hot = jnp.arange(NUM_OCCUPANCY) == channel
     old_occ = old[..., :NUM_OCCUPANCY]
     occ = jnp.where(hot, jnp.maximum(old_occ, cov[..., None]), old_occ)
-    motion = actor_motion(actor, cfg)
+    motion = actor_motion(actor, grid)
     w = cov[..., None]
     mot = w * motion + (1.0 - w) * old[..., NUM_OCCUPANCY:]
     new = jnp.concatenate([occ, mot], axis=-1).astype(raster.dtype)
@@ -210,16 +210,16 @@ def draw_actor(
     return lax.dynamic_update_slice(raster, new, (row0, col0, 0))
 
 
-def empty_actor_raster(cfg: Config) -> jnp.ndarray:
+def empty_actor_raster(grid: GridConfig) -> jnp.ndarray:
     """Zeros float32 [H, W, 9]."""
-    h = cfg.grid_size
+    h = grid.grid_size
     return jnp.zeros((h, h, NUM_ACTOR_CHANNELS), jnp.float32)
 
 
 def rasterize_actors(
     actors: Actors,
     ego: Actors,
-    cfg: Config,
+    grid: GridConfig,
     upto: int | jnp.ndarray,
     samples: int = DEFAULT_SAMPLES,
     max_box_m: float = DEFAULT_MAX_BOX_M,
@@ -229,13 +229,13 @@ def rasterize_actors(
     Args:
       actors: [N] actor slots.
       ego: one actor (no leading axis).
-      cfg: config.
+      grid: config.
       upto: number of leading slots to draw (Python int or int array; clipped to [0, N]).
       samples: s, sub-cells per pixel side (static).
       max_box_m: see `window_size`.
     """
     n = actors.num_slots
-    raster = draw_actor(empty_actor_raster(cfg), ego, True, cfg, samples, max_box_m)
+    raster = draw_actor(empty_actor_raster(grid), ego, True, grid, samples, max_box_m)
     if isinstance(upto, int):
         upto = min(max(upto, 0), n)  # static: a scan
     else:
@@ -244,7 +244,7 @@ def rasterize_actors(
     def body(i, raster):
         actor = tree_take(actors, i)
         actor = actor.replace(valid=actor.valid & (i < upto))
-        return draw_actor(raster, actor, False, cfg, samples, max_box_m)
+        return draw_actor(raster, actor, False, grid, samples, max_box_m)
 
     # A traced trip count is a while_loop: only `upto` draws (the mask keeps vmap exact).
     return lax.fori_loop(0, upto, body, raster)
@@ -253,7 +253,7 @@ def rasterize_actors(
 def actor_rasters_sequence(
     actors: Actors,
     ego: Actors,
-    cfg: Config,
+    grid: GridConfig,
     samples: int = DEFAULT_SAMPLES,
     max_box_m: float = DEFAULT_MAX_BOX_M,
 ) -> jnp.ndarray:
@@ -266,14 +266,14 @@ def actor_rasters_sequence(
     Args:
       actors: [N] actor slots.
       ego: one actor (no leading axis).
-      cfg: config.
+      grid: config.
       samples: s, sub-cells per pixel side (static).
       max_box_m: see `window_size`.
     """
-    first = draw_actor(empty_actor_raster(cfg), ego, True, cfg, samples, max_box_m)
+    first = draw_actor(empty_actor_raster(grid), ego, True, grid, samples, max_box_m)
 
     def step(raster, actor):
-        return draw_actor(raster, actor, False, cfg, samples, max_box_m), raster
+        return draw_actor(raster, actor, False, grid, samples, max_box_m), raster
 
     last, before = lax.scan(step, first, actors)
     return jnp.concatenate([before, last[None]], axis=0)

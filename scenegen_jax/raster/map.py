@@ -12,7 +12,7 @@ import functools
 import numpy as np
 import shapely
 
-from scenegen_jax.config import ALL_LAYER_GROUPS, DATASETS, LAYER_GROUPS, Config
+from scenegen_jax.config import ALL_LAYER_GROUPS, DATASETS, LAYER_GROUPS, GridConfig
 from scenegen_jax.scene import pixel_centers
 from scenegen_jax.vector_map import VectorMap, is_crossable
 
@@ -30,8 +30,8 @@ LINE_HALF_WIDTH_M = 0.15  # painted line / centreline half width before pixel pa
 
 @functools.lru_cache(maxsize=8)
 def _grid_points(size: int, m_per_px: float) -> tuple[np.ndarray, np.ndarray]:
-    cfg = Config(grid_size=size, m_per_px=m_per_px)
-    centers = pixel_centers(cfg).reshape(-1, 2).astype(np.float64)
+    grid = GridConfig(grid_size=size, m_per_px=m_per_px)
+    centers = pixel_centers(grid).reshape(-1, 2).astype(np.float64)
     return centers, shapely.points(centers)
 
 
@@ -226,7 +226,7 @@ def _segment_direction(line: np.ndarray, pts: np.ndarray,
     return u[:, 0], u[:, 1]
 
 
-def select_channels(raster, cfg: Config):
-    """Map channels of `cfg.map_layers` from a raster holding `ALL_MAP_CHANNELS` (last axis)."""
-    idx = [ALL_MAP_CHANNELS.index(c) for c in cfg.map_channels]
+def select_channels(raster, grid: GridConfig):
+    """Map channels of `grid.map_layers` from a raster holding `ALL_MAP_CHANNELS` (last axis)."""
+    idx = [ALL_MAP_CHANNELS.index(c) for c in grid.map_channels]
     return raster[..., idx]

@@ -7,7 +7,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from scenegen_jax.config import Config
+from scenegen_jax.config import ModelConfig
 from scenegen_jax.distributions import (
     best_of_m,
     heading_log_prob,
@@ -33,7 +33,7 @@ def sample_attributes(
     heading_raw: jnp.ndarray,
     velocity_raw: jnp.ndarray,
     cls: jnp.ndarray,
-    cfg: Config,
+    cfg: ModelConfig,
     proposals: int,
 ) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
     """Box size of R actors, one draw each; heading and velocity, each the most likely of M.
@@ -53,7 +53,7 @@ def sample_attributes(
     actor r splits keys[r] into 1 + 2M keys: the box's, then M heading and M velocity
     proposal keys. With M = 1 every attribute is one plain draw.
 
-    Pedestrians get the nominal square box (`cfg.pedestrian_size_m`) and the velocity
+    Pedestrians get the nominal square box (`cfg.grid.pedestrian_size_m`) and the velocity
     direction as heading (0 when standing). Outputs are clamped and made finite (see the
     module docstring).
 
@@ -67,7 +67,7 @@ def sample_attributes(
     Returns:
       (size [R, 2] (width, length) m, heading [R] rad in [0, 2pi), velocity [R, 2] m/s).
     """
-    zero = cfg.zero_speed
+    zero = cfg.grid.zero_speed
     m = proposals
     sub = jax.vmap(lambda k: jax.random.split(k, 1 + 2 * m))(keys)  # box, M heading, M velocity
     size = jax.vmap(sample_box)(sub[:, 0], box_raw)
@@ -96,6 +96,6 @@ def sample_attributes(
     is_ped = cls == PEDESTRIAN
     moving = speed > zero
     walk = jnp.arctan2(velocity[:, 1], jnp.where(moving, velocity[:, 0], 1.0))
-    size = jnp.where(is_ped[:, None], jnp.asarray(cfg.pedestrian_size_m, size.dtype), size)
+    size = jnp.where(is_ped[:, None], jnp.asarray(cfg.grid.pedestrian_size_m, size.dtype), size)
     heading = wrap_angle(jnp.where(is_ped, jnp.where(moving, walk, 0.0), heading))
     return size.astype(jnp.float32), heading.astype(jnp.float32), velocity.astype(jnp.float32)

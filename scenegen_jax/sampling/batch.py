@@ -28,7 +28,7 @@ from scenegen_jax.backend import (
     make_mesh,
     sampling_compiler_options,
 )
-from scenegen_jax.config import Config
+from scenegen_jax.config import Config, ModelConfig
 from scenegen_jax.raster.transform import crop_map
 from scenegen_jax.sampling.model import Model, NetworkModel
 from scenegen_jax.sampling.rollout import (
@@ -74,7 +74,7 @@ def scene_keys(key: jax.Array, num_maps: int, num_per_map: int, first: int = 0) 
     return scene_key(key, index)
 
 
-def _sample_batch(keys, params, maps, egos, given, caps, temperature, *, cfg: Config,
+def _sample_batch(keys, params, maps, egos, given, caps, temperature, *, cfg: ModelConfig,
                   options: SamplerOptions, model: Model | None) -> Sample:
     b, s = keys.shape[:2]
     parallel = default_parallel() if options.parallel is None else options.parallel
@@ -137,12 +137,12 @@ def sample_batch(
     given: Actors,
     caps: jnp.ndarray,
     *,
-    cfg: Config,
+    cfg: ModelConfig,
     options: SamplerOptions = DEFAULT_OPTIONS,
     model: Model | None = None,
 ) -> Sample:
     """One compiled call for a batch: scene (b, s) is `rollout(keys[b, s], params, maps[b],
-    ...)`. Compiled once per (`cfg.inference()`, options, model, shapes); the location
+    ...)`. Compiled once per (model config, options, model, shapes); the location
     temperature is passed as an array, so that every temperature runs the same program.
 
     The B x S scenes run `options.parallel` at a time under vmap (`lax.map` over groups); a
@@ -165,11 +165,11 @@ def sample_batch(
     temperature = np.float32(options.location_temperature)
     options = dataclasses.replace(options, location_temperature=1.0)  # the static part
     return jitted_sampler()(keys, params, maps, egos, given, caps, temperature,
-                            cfg=cfg.inference(), options=options, model=model)
+                            cfg=cfg, options=options, model=model)
 
 
 def sample_split(keys: jax.Array, params: Any, maps, egos: Actors, given: Actors, caps, *,
-                 cfg: Config, options: SamplerOptions = DEFAULT_OPTIONS,
+                 cfg: ModelConfig, options: SamplerOptions = DEFAULT_OPTIONS,
                  model: Model | None = None, workers: int | None = None) -> Sample:
     """`sample_batch(keys, params, maps, egos, given, caps, ...)` as `workers` concurrent
     calls on equal parts of the batch (`backend.concurrent_map`); each scene depends only on
@@ -255,7 +255,7 @@ def batch_inputs(cfg: Config, num_maps: int, given: Actors | None = None, caps=N
     `given` may be None, Actors [G] (shared by all maps) or Actors [B, G]; `caps` None, [3]
     or [B, 3].
     """
-    n = cfg.max_actors
+    n = cfg.grid.max_actors
     if given is None:  # numpy: no compiled program
         given = jax.tree.map(lambda x: np.broadcast_to(x, (num_maps, *x.shape)), empty_actors(n))
     else:
@@ -309,18 +309,20 @@ def sample_scenes(
       Sample with leading axes [B, S].
     """
     b = maps.shape[0]
-    h = cfg.grid_size
-    if maps.ndim != 4 or tuple(maps.shape[1:]) != (h, h, len(cfg.map_channels)):
+    h = cfg.grid.grid_size
+    if maps.ndim != 4 or tuple(maps.shape[1:]) != (h, h, len(cfg.grid.map_channels)):
         raise ValueError(f"maps: shape {tuple(maps.shape)}, config {cfg.name!r} needs [B, {h}, "
-                         f"{h}, {len(cfg.map_channels)}] (a cache canvas is cropped first: "
+                         f"{h}, {len(cfg.grid.map_channels)}] (a cache canvas is cropped first: "
                          "`raster.transform.crop_map`)")
     if np.shape(egos.cls)[:1] != (b,):
         raise ValueError(f"egos: {np.shape(egos.cls)[:1]} rows for {b} maps")
     if num_per_map < 1:
         raise ValueError(f"num_per_map must be >= 1, got {num_per_map}")
     given, caps = batch_inputs(cfg, b, given, caps)
+    if options.proposals is None:
+        options = dataclasses.replace(options, proposals=cfg.sample.proposals)
     return sample_split(scene_keys(key, b, num_per_map, first), params, maps, egos, given, caps,
-                        cfg=cfg, options=options, model=model, workers=workers)
+                        cfg=cfg.model, options=options, model=model, workers=workers)
 
 
 @dataclasses.dataclass
@@ -399,7 +401,7 @@ def _sample_on_cache(params, cfg: Config, cache, key, scenes: range, indices: li
             if not np.isfinite(cache.maps[i]).all():
                 raise ValueError(f"scene {cache.scene_name(i)}: field canvas: NaN or inf in "
                                  "the map")
-            maps[i] = np.asarray(crop(jnp.asarray(cache.maps[i]), 0.0, cfg))
+            maps[i] = np.asarray(crop(jnp.asarray(cache.maps[i]), 0.0, cfg.grid))
         return maps[i]
 
     for start in range(scenes.start, scenes.stop, batch_size):

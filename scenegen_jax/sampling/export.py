@@ -4,7 +4,7 @@ ScenarioNet exporter. Pure functions over numpy; the CLI does the file I/O.
 JSON actor record (units m, rad, m/s; ego frame, x forward, y left):
   {"class": "vehicle" | "pedestrian" | "bicyclist", "x", "y", "width", "length", "heading",
    "vx", "vy"}
-Pedestrians carry the nominal footprint (`cfg.pedestrian_size_m`) and their walking
+Pedestrians carry the nominal footprint (`cfg.grid.pedestrian_size_m`) and their walking
 direction as heading; on input their width, length and heading may be omitted.
 """
 
@@ -61,14 +61,14 @@ def actors_from_records(
     ego_sizes: np.ndarray | None = None,
     allow_overlap: bool = False,
 ) -> Actors:
-    """Actors [N = cfg.max_actors] (numpy, canonical order) from JSON records.
+    """Actors [N = cfg.grid.max_actors] (numpy, canonical order) from JSON records.
 
     Args:
       records: actor records (module docstring); `actors[i]` in errors is records[i].
       cfg: the model's config.
       where: what errors name first, e.g. "given.jsonl:3" (file and line).
       ego_sizes: [E, 2] (width, length) m of the egos the actors will meet, each at the
-        origin with heading 0 (default: cfg.ego_size_m).
+        origin with heading 0 (default: cfg.grid.ego_size_m).
       allow_overlap: keep boxes that overlap each other or an ego (`check_overlaps`).
 
     Raises ValueError naming `where` and the field for unknown classes, missing values or
@@ -76,7 +76,7 @@ def actors_from_records(
     non-positive box sizes, actors outside the region, more than N actors, and (unless
     `allow_overlap`) overlapping boxes.
     """
-    n = cfg.max_actors
+    n = cfg.grid.max_actors
     if not isinstance(records, Sequence) or isinstance(records, (str, bytes)):
         raise ValueError(f"{where}: actors: expected a list of actor records")
     if len(records) > n:
@@ -98,7 +98,7 @@ def actors_from_records(
         ped = c == PEDESTRIAN
         values = {}
         for key in RECORD_FIELDS:
-            default = {"width": cfg.pedestrian_size_m, "length": cfg.pedestrian_size_m,
+            default = {"width": cfg.grid.pedestrian_size_m, "length": cfg.grid.pedestrian_size_m,
                        "heading": 0.0}.get(key) if ped else None
             value = rec.get(key, default)
             if value is None:
@@ -106,9 +106,9 @@ def actors_from_records(
             values[key] = _number(value, f"{field}.{key}")
         if not ped and (values["width"] <= 0 or values["length"] <= 0):
             raise ValueError(f"{field}.width/length: box sizes must be positive")
-        if not in_region(np.array([values["x"], values["y"]]), cfg):
+        if not in_region(np.array([values["x"], values["y"]]), cfg.grid):
             raise ValueError(f"{field}.x/y: ({values['x']:g}, {values['y']:g}) m lies outside "
-                             f"the {cfg.region_m:g} m region around the ego")
+                             f"the {cfg.grid.region_m:g} m region around the ego")
         cls[i] = c
         position[i] = (values["x"], values["y"])
         size[i] = (values["width"], values["length"])
@@ -118,10 +118,10 @@ def actors_from_records(
     actors = Actors(cls=cls, position=position, size=size, heading=heading, velocity=velocity,
                     valid=valid)
     if not allow_overlap:
-        sizes = np.asarray(cfg.ego_size_m if ego_sizes is None else ego_sizes, np.float64)
+        sizes = np.asarray(cfg.grid.ego_size_m if ego_sizes is None else ego_sizes, np.float64)
         check_overlaps(actors, sizes.reshape(-1, 2), where)
-    actors = _numpy(canonical_order(actors, cfg))
-    Scene(actors=actors, ego=make_ego(cfg.ego_size_m)).validate(cfg, where)
+    actors = _numpy(canonical_order(actors, cfg.grid))
+    Scene(actors=actors, ego=make_ego(cfg.grid.ego_size_m)).validate(cfg.grid, where)
     return actors
 
 

@@ -8,7 +8,7 @@ from typing import Any, Protocol
 
 import jax.numpy as jnp
 
-from scenegen_jax.config import Config
+from scenegen_jax.config import ModelConfig
 from scenegen_jax.model.network import SceneGenNet
 
 
@@ -47,7 +47,7 @@ class NetworkModel:
     CPU) instead of `conv_per_example`; the same values either way.
     """
 
-    cfg: Config
+    cfg: ModelConfig
     single_example: bool = True
 
     def _apply(self, params, method, *args):

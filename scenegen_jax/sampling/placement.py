@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from scenegen_jax.config import Config
+from scenegen_jax.config import ModelConfig
 from scenegen_jax.distributions import offsets_in_bin, sample_bins, uniforms
 from scenegen_jax.model.network import map_at_bins
 from scenegen_jax.sampling.attributes import sample_attributes
@@ -17,14 +17,14 @@ from scenegen_jax.sampling.model import Model
 from scenegen_jax.scene import PEDESTRIAN, Actors, bin_center, empty_actors, tree_take
 
 
-def draw_candidates(key, params, model: Model, f, map_raster, cls, log_probs, cfg: Config,
+def draw_candidates(key, params, model: Model, f, map_raster, cls, log_probs, cfg: ModelConfig,
                     proposals, count):
     """`count` i.i.d. candidate actors of class `cls`: bins from `log_probs` [H*W] (-inf
     outside the allowed set), positions uniform in the bins, attributes (`sample_attributes`)
     from the features f [1, H, W, h] and map channels map_raster [1, H, W, Cm] at the bins."""
     k_bin, k_pos, k_attr = jax.random.split(key, 3)
-    bins = sample_bins(k_bin, log_probs, count, cfg.grid_size)
-    position = bin_center(bins, cfg) + offsets_in_bin(uniforms(k_pos, (count, 2)), cfg)
+    bins = sample_bins(k_bin, log_probs, count, cfg.grid.grid_size)
+    position = bin_center(bins, cfg.grid) + offsets_in_bin(uniforms(k_pos, (count, 2)), cfg.grid)
     feat = f[0].reshape(-1, f.shape[-1])[bins]  # [R, hidden]
     classes = jnp.full((count,), cls, jnp.int32)
     box_raw, heading_raw, velocity_raw = model.attributes(
@@ -43,7 +43,7 @@ def draw_candidates(key, params, model: Model, f, map_raster, cls, log_probs, cf
 
 
 def place_actor(key, params, model: Model, f, map_raster, cls, log_probs, placed: Actors,
-                ego: Actors, cfg: Config, proposals: int, candidates: int, rounds: int):
+                ego: Actors, cfg: ModelConfig, proposals: int, candidates: int, rounds: int):
     """Draws candidates round by round until one overlaps none of the `placed` actors' boxes
     nor the ego's (`rollout`'s module docstring).
 

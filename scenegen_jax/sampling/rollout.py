@@ -1,7 +1,7 @@
 """Autoregressive sampling of traffic scenes (paper sec. 3.3, SPEC sec. 6), jitted and vmapped.
 
 `rollout` generates ONE scene (unbatched) inside a single traced function: a `lax.while_loop`
-over the steps, at most `cfg.max_actors`, the first from the zero ConvLSTM state, whose carry
+over the steps, at most `cfg.grid.max_actors`, the first from the zero ConvLSTM state, whose carry
 (`SamplerState`) holds the ConvLSTM state, the actor raster, the actors so far, the previous
 bin and a done flag. No host transfer, no Python loop over steps. The loop exits as soon as
 the scene is done; under `vmap` it runs until every scene of the batch is done and finished
@@ -27,7 +27,7 @@ One step t (key `fold_in(key, t)`):
      supplementary 3.2 also takes the best of M positions, but with our models that puts
      each actor on the likeliest bins just after the previous one, and crowds the scenes
      into the first rows of road. Pedestrians:
-     nominal square box (`cfg.pedestrian_size_m`), heading = the velocity direction (0 when
+     nominal square box (`cfg.grid.pedestrian_size_m`), heading = the velocity direction (0 when
      standing); their box and heading are not modelled.
   5. Collision rejection: a vehicle or bicyclist candidate whose box overlaps the ego or an
      earlier vehicle/bicyclist box is rejected; the first accepted candidate is kept. The first
@@ -63,7 +63,7 @@ import jax.numpy as jnp
 from flax import struct
 from jax import lax
 
-from scenegen_jax.config import Config
+from scenegen_jax.config import ModelConfig
 from scenegen_jax.distributions import masked_log_softmax, ordering_mask, sample_class
 from scenegen_jax.raster.actors import draw_actor, empty_actor_raster
 from scenegen_jax.sampling.model import Model, NetworkModel
@@ -88,7 +88,8 @@ class SamplerOptions:
     """The sampler's settings (hashable: one compilation per distinct value, but for the
     temperature, which `sample_batch` passes as an array: every temperature runs one program).
 
-    proposals: M of best-of-M; None: the config's `proposals`.
+    proposals: M of best-of-M; None: the config's `sample.proposals` (`sampling.batch.sample_scenes`
+      sets it; `rollout` needs it set).
     candidates: R, candidate draws per collision-rejection round.
     rounds: rejection rounds before a scene stops.
     heatmap_steps: steps whose location distribution is recorded.
@@ -261,10 +262,10 @@ def _step_log_probs(model: Model, inputs: _Inputs, state: SamplerState, f, cls, 
     return jnp.where(jnp.isnan(log_probs), -jnp.inf, log_probs)
 
 
-def _step(model: Model, cfg: Config, options: SamplerOptions, proposals: int, inputs: _Inputs,
+def _step(model: Model, cfg: ModelConfig, options: SamplerOptions, proposals: int, inputs: _Inputs,
           state: SamplerState) -> SamplerState:
     """One step of the rollout (the module docstring's steps 1 to 6)."""
-    n, n_bins, params = cfg.max_actors, cfg.grid_size * cfg.grid_size, inputs.params
+    n, n_bins, params = cfg.grid.max_actors, cfg.grid.grid_size * cfg.grid.grid_size, inputs.params
     t = state.count
     k_class, k_place = jax.random.split(jax.random.fold_in(inputs.key, t))
     gates = (inputs.map_gates + state.actor_gates
@@ -294,7 +295,7 @@ def _step(model: Model, cfg: Config, options: SamplerOptions, proposals: int, in
     ).astype(jnp.int32)
     hit = inputs.heatmap_steps == t
     probs = jnp.where(is_stop, 0.0, jnp.exp(log_probs))
-    raster = draw_actor(state.raster, actor, False, cfg)
+    raster = draw_actor(state.raster, actor, False, cfg.grid)
     return SamplerState(
         lstm=lstm,
         raster=raster,
@@ -302,7 +303,7 @@ def _step(model: Model, cfg: Config, options: SamplerOptions, proposals: int, in
                                            raster[None], actor.position[None]),
         actors=actors,
         count=count,
-        prev_bin=jnp.where(placed, bin_index(actor.position, cfg), state.prev_bin),
+        prev_bin=jnp.where(placed, bin_index(actor.position, cfg.grid), state.prev_bin),
         done=done,
         class_counts=state.class_counts + (jnp.arange(NUM_CLASSES) == cls) * placed,
         stop_reason=jnp.where(done, reason, state.stop_reason),
@@ -337,7 +338,7 @@ def rollout(
     params: Any,
     map_raster: jnp.ndarray,
     ego: Actors,
-    cfg: Config,
+    cfg: ModelConfig,
     given: Actors | None = None,
     caps: jnp.ndarray | None = None,
     options: SamplerOptions = DEFAULT_OPTIONS,
@@ -367,10 +368,13 @@ def rollout(
     model = NetworkModel(cfg) if model is None else model
     if location_temperature is None:
         location_temperature = options.location_temperature
-    m = cfg.proposals if options.proposals is None else options.proposals
-    n = cfg.max_actors
+    if options.proposals is None:
+        raise ValueError("options.proposals: None; `sampling.batch.sample_scenes` sets it from "
+                         "the config's sample.proposals")
+    m = options.proposals
+    n = cfg.grid.max_actors
     # Stable sort: canonical input is unchanged, anything else is put in canonical order.
-    given = canonical_order(pad_given(given, n), cfg)
+    given = canonical_order(pad_given(given, n), cfg.grid)
     n_given = jnp.sum(given.valid).astype(jnp.int32)
     caps = jnp.full((NUM_CLASSES,), n, jnp.int32) if caps is None else jnp.asarray(caps, jnp.int32)
     steps = jnp.asarray(options.heatmap_steps, jnp.int32).reshape(-1)
@@ -378,11 +382,11 @@ def rollout(
 
     map_raster = jnp.asarray(map_raster, jnp.float32)[None]
     map_gates = model.map_gates(params, map_raster)
-    raster = draw_actor(empty_actor_raster(cfg), ego, True, cfg)
+    raster = draw_actor(empty_actor_raster(cfg.grid), ego, True, cfg.grid)
     inputs = _Inputs(key, params, map_raster, map_gates, ego, given, n_given, caps, steps,
                      location_temperature)
     init = _initial_state(model, params, raster, n, steps.shape[0],
-                          cfg.grid_size * cfg.grid_size)
+                          cfg.grid.grid_size * cfg.grid.grid_size)
     # Every step in the loop, the first from the zero state with its (zero) recurrent
     # convolutions: a first step of its own would skip them but compile the step twice.
     step = functools.partial(_step, model, cfg, options, m, inputs)

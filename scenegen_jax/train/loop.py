@@ -62,7 +62,7 @@ def save_or_check_config(workdir: str, cfg: Config) -> None:
     if os.path.exists(path):
         with open(path) as f:
             saved = Config.from_json(f.read(), path)
-        if saved.replace(remat=cfg.remat) != cfg:
+        if saved.replace(remat=cfg.train.remat) != cfg:
             raise ValueError(
                 f"{path}: this workdir was trained with a different config "
                 f"({'; '.join(saved.differences(cfg))}, saved != requested); use a new "
@@ -154,11 +154,11 @@ def summarize(stats: dict) -> dict:
 
 
 def _warn_over_max_actors(cache: CacheUnion, cfg: Config) -> None:
-    over = int(np.sum(actors_in_region(cache, cfg) > cfg.max_actors))
+    over = int(np.sum(actors_in_region(cache, cfg) > cfg.grid.max_actors))
     if over:
         log.info("%d of %d scenes hold more than max_actors = %d actors in the region "
                  "(unrotated): each trains on its first %d in canonical order, without a stop "
-                 "token", over, len(cache), cfg.max_actors, cfg.max_actors)
+                 "token", over, len(cache), cfg.grid.max_actors, cfg.grid.max_actors)
 
 
 def _prepare_workdir(cfg: Config, workdir: str, cache: CacheUnion, weights,
@@ -204,9 +204,9 @@ def _progress_bar(steps: int, start: int, progress: bool, max_seconds: float | N
 def _device_batch(cache: CacheUnion, indices: np.ndarray, cfg: Config,
                   data_sharding: NamedSharding):
     """This process's rows `indices` of a global batch, checked, on its devices."""
-    host = gather_batch(cache, indices, cfg)
+    host = gather_batch(cache, indices, cfg.grid)
     check_batch(host, [cache.scene_name(i) for i in indices])
-    return to_device(host, data_sharding, cfg.batch_size)
+    return to_device(host, data_sharding, cfg.train.batch_size)
 
 
 def _log_metrics(acc: dict, done: int, t0: float, n0: int, path: str, bar: tqdm) -> None:
@@ -248,7 +248,7 @@ def train(
 
     In a multi-process job (`backend.start_distributed`) every process runs this with the
     same arguments: the mesh spans every process's devices, each process reads only its
-    `local_rows` of each global batch of `cfg.batch_size` scenes, all save and restore the
+    `local_rows` of each global batch of `cfg.train.batch_size` scenes, all save and restore the
     one checkpoint, and process 0 alone writes config.json, data.json, metrics.jsonl and
     the progress bar.
     """
@@ -260,7 +260,7 @@ def train(
     step_fn = None  # compiled for the first batch's shapes (every batch has the same)
     data_sharding = NamedSharding(mesh, P("data"))
     ckpt = Checkpointer(os.path.join(workdir, CHECKPOINTS), save_every, keep, heal=True)
-    rows = local_rows(data_sharding, cfg.batch_size)
+    rows = local_rows(data_sharding, cfg.train.batch_size)
     state = _start_state(ckpt, state, warm, cfg, init_from, NamedSharding(mesh, P()))
     start = int(state.step)
     metrics_path = os.path.join(workdir, "metrics.jsonl")
@@ -269,10 +269,10 @@ def train(
     acc, t0, n0 = None, time.perf_counter(), start
     t_start = t0
     for step in range(start, steps):
-        indices = union_indices(cache, shares, cfg.batch_size, cfg.seed, step)[rows]
+        indices = union_indices(cache, shares, cfg.train.batch_size, cfg.train.seed, step)[rows]
         batch = _device_batch(cache, indices, cfg, data_sharding)
         if step_fn is None:  # remat resolved once, for the programs the run compiles
-            step_cfg = resolve_remat(cfg, cfg.batch_size // mesh.size)
+            step_cfg = resolve_remat(cfg, cfg.train.batch_size // mesh.size)
             step_fn = train_step_for_run(step_cfg, state, batch, mesh, steps - step)
         state, stats = step_fn(state, batch)
         stats = {**stats, "batches": 1}
@@ -298,8 +298,8 @@ def warm_started(state: TrainState, cfg: Config, init_from: str) -> TrainState:
     """The fresh `state` with the parameters of `init_from` (`start_params`, `warm_start`),
     and an optimizer and moving average started on them."""
     source_cfg, source = start_params(init_from)
-    params = warm_start(state.params, source, init_from, cfg.map_channels,
-                        source_cfg.map_channels, fresh=reframed(cfg, source_cfg))
+    params = warm_start(state.params, source, init_from, cfg.grid.map_channels,
+                        source_cfg.grid.map_channels, fresh=reframed(cfg, source_cfg))
     return state._replace(params=params, opt_state=make_optimizer(cfg).init(params),
                           ema=start_ema(cfg, params))
 

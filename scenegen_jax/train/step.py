@@ -64,7 +64,7 @@ class TrainState(NamedTuple):
 def start_ema(cfg: Config, params):
     """The moving average a run starting from `params` begins with: a copy of them (its own
     buffers: a train step donates both), or None without `ema_decay`."""
-    if cfg.ema_decay == 0:
+    if cfg.train.ema_decay == 0:
         return None
     return jax.tree.map(lambda x: jnp.array(x, copy=True), params)
 
@@ -74,7 +74,7 @@ def update_ema(cfg: Config, ema, params):
     None."""
     if ema is None:
         return None
-    d = cfg.ema_decay
+    d = cfg.train.ema_decay
     return jax.tree.map(lambda e, p: (d * e + (1 - d) * p).astype(e.dtype), ema, params)
 
 
@@ -83,24 +83,26 @@ def make_optimizer(cfg: Config) -> optax.GradientTransformation:
     `train_layers` or `train_params`, the gradients first masked to those weights
     (`trainable_mask`)."""
     adam = optax.adam(learning_rate_at(cfg))
-    if cfg.grad_clip > 0:
-        adam = optax.chain(optax.clip_by_global_norm(cfg.grad_clip), adam)
-    if cfg.train_layers or cfg.train_params:
+    if cfg.train.grad_clip > 0:
+        adam = optax.chain(optax.clip_by_global_norm(cfg.train.grad_clip), adam)
+    if cfg.train.train_layers or cfg.train.train_params:
         return optax.chain(_masked(functools.partial(trainable_mask, cfg)), adam)
     return adam
 
 
 def trainable_mask(cfg: Config, params):
-    """1 on the weights that read the map channels of `cfg.train_layers` (`MAP_CHANNEL_AXIS`)
-    and on every entry of the parameters `cfg.train_params`, 0 elsewhere: numpy arrays shaped
+    """1 on the weights that read the map channels of `cfg.train.train_layers` (`MAP_CHANNEL_AXIS`)
+    and on every entry of the parameters `cfg.train.train_params`, 0 elsewhere: numpy arrays shaped
     as `params`. An unknown parameter name is a ValueError that lists the known ones."""
-    unknown = sorted(set(cfg.train_params) - set(params))
+    unknown = sorted(set(cfg.train.train_params) - set(params))
     if unknown:
         raise ValueError(f"train_params: no parameter {unknown}; parameters: {sorted(params)}")
-    channels = [cfg.map_channels.index(c) for g in cfg.train_layers for c in LAYER_GROUPS[g]]
+    channels = [
+        cfg.grid.map_channels.index(c) for g in cfg.train.train_layers for c in LAYER_GROUPS[g]
+    ]
 
     def mask(path, x):
-        if path[0].key in cfg.train_params:
+        if path[0].key in cfg.train.train_params:
             return np.ones(x.shape, np.float32)
         m = np.zeros(x.shape, np.float32)
         axis = MAP_CHANNEL_AXIS.get(path[0].key)
@@ -126,24 +128,28 @@ def learning_rate_at(cfg: Config) -> float | optax.Schedule:
     where set, and with `decay_steps` a cosine from `learning_rate` to 0 over that many steps
     after the ramp (0 after them). A constant is a float: its optimizer state has no step
     count, as in checkpoints saved before the schedules existed."""
-    peak = cfg.learning_rate
-    if cfg.decay_steps == 0:
-        return optax.linear_schedule(0.0, peak, cfg.warmup_steps) if cfg.warmup_steps else peak
-    decay = optax.cosine_decay_schedule(peak, cfg.decay_steps)
-    if cfg.warmup_steps == 0:
+    peak = cfg.train.learning_rate
+    if cfg.train.decay_steps == 0:
+        return (
+            optax.linear_schedule(0.0, peak, cfg.train.warmup_steps)
+            if cfg.train.warmup_steps
+            else peak
+        )
+    decay = optax.cosine_decay_schedule(peak, cfg.train.decay_steps)
+    if cfg.train.warmup_steps == 0:
         return decay
-    ramp = optax.linear_schedule(0.0, peak, cfg.warmup_steps)
-    return optax.join_schedules([ramp, decay], [cfg.warmup_steps])
+    ramp = optax.linear_schedule(0.0, peak, cfg.train.warmup_steps)
+    return optax.join_schedules([ramp, decay], [cfg.train.warmup_steps])
 
 
 def init_state(cfg: Config, seed: int | None = None) -> TrainState:
-    """Fresh train state from `seed` (default cfg.seed), compiled as one program with the
+    """Fresh train state from `seed` (default cfg.train.seed), compiled as one program with the
     parameters (`init_params`), since the optimizer's zeros dispatched one by one would take
     a noticeable share of the initialisation."""
 
     def fresh(key):
         init_key, base = jax.random.split(key)
-        params = init_params(cfg, init_key)
+        params = init_params(cfg.model, init_key)
         return TrainState(
             step=jnp.zeros((), jnp.int32),
             params=params,
@@ -152,7 +158,7 @@ def init_state(cfg: Config, seed: int | None = None) -> TrainState:
             ema=start_ema(cfg, params),
         )
 
-    key = jax.random.key(cfg.seed if seed is None else seed)
+    key = jax.random.key(cfg.train.seed if seed is None else seed)
     return compiled_init(fresh, key)
 
 
@@ -160,7 +166,11 @@ def loss_fn(params, cfg: Config, maps, scene):
     """Mean scene NLL (nats) with the hard-negative location normaliser, and stats: the
     plain definition. `train_step` computes the same value and its gradient window by window
     (`unroll_terms_and_grads`); a test holds the two equal."""
-    return mean_nll(unroll_terms(params, cfg, maps, scene, cfg.hard_negatives))
+    return mean_nll(
+        unroll_terms(
+            params, cfg.model, maps, scene, cfg.train.hard_negatives, remat=cfg.train.remat
+        )
+    )
 
 
 def _psum_packed(tree, axis: str | None):
@@ -182,13 +192,13 @@ def _step_inputs(state: TrainState, batch: Batch, cfg: Config, axis: str | None)
     devices = 1 if axis is None else jax.lax.axis_size(axis)
     first = 0 if axis is None else jax.lax.axis_index(axis) * local
     b = local * devices  # the global batch: draws, and the mean over scenes, are over it
-    if cfg.rotate_augment:
+    if cfg.train.rotate_augment:
         thetas = jax.random.uniform(key, (b,), maxval=2 * jnp.pi)
     else:
         thetas = jnp.zeros((b,))
-    maps, scene = crop_batch(batch, jax.lax.dynamic_slice_in_dim(thetas, first, local), cfg)
-    if cfg.map_dropout > 0:
-        keep = jax.random.uniform(jax.random.fold_in(key, 1), (b, 1, 1, 1)) >= cfg.map_dropout
+    maps, scene = crop_batch(batch, jax.lax.dynamic_slice_in_dim(thetas, first, local), cfg.grid)
+    if cfg.train.map_dropout > 0:
+        keep = jax.random.uniform(jax.random.fold_in(key, 1), (b, 1, 1, 1)) >= cfg.train.map_dropout
         maps = maps * jax.lax.dynamic_slice_in_dim(keep, first, local)
     return maps, scene, b, devices
 
@@ -218,7 +228,9 @@ def train_step(
     """
     maps, scene, b, devices = _step_inputs(state, batch, cfg, axis)
     # loss_fn's value, and its gradient taken one window at a time.
-    unrolled, grads = unroll_terms_and_grads(state.params, cfg, maps, scene, 1.0 / b)
+    unrolled, grads = unroll_terms_and_grads(
+        state.params, cfg.model, maps, scene, 1.0 / b, cfg.train.hard_negatives, cfg.train.remat
+    )
     return _apply_grads(state, cfg, unrolled, grads, devices, axis)
 
 
@@ -237,8 +249,8 @@ def step_bytes_without_remat(cfg: Config, scenes: int) -> int:
     """Estimated bytes of the train step's buffers without remat on a device that holds
     `scenes` scenes of the batch: about one window's activations (the step takes a window's
     gradient right after its forward pass)."""
-    per_pixel = STEP_BYTES_PER_CHANNEL * cfg.hidden + STEP_BYTES_FIXED
-    return scenes * cfg.bptt_window * cfg.grid_size**2 * per_pixel
+    per_pixel = STEP_BYTES_PER_CHANNEL * cfg.model.hidden + STEP_BYTES_FIXED
+    return scenes * cfg.model.bptt_window * cfg.grid.grid_size**2 * per_pixel
 
 
 def resolve_remat(cfg: Config, scenes: int) -> Config:
@@ -247,26 +259,35 @@ def resolve_remat(cfg: Config, scenes: int) -> Config:
     now (`step_bytes_without_remat`, `backend.free_memory_bytes`), else true; the choice is
     logged. Other values are kept. Remat costs time wherever the step fits without it, so it
     is taken only where memory requires it (the paper's batch of 16 on one accelerator)."""
-    if cfg.remat != "auto":
+    if cfg.train.remat != "auto":
         return cfg
     need, free = step_bytes_without_remat(cfg, scenes), free_memory_bytes()
     remat = need > REMAT_FREE_SHARE * free
-    log.info("remat auto: %s (the step without it takes about %.1f GiB; %.1f GiB free)",
-             "on" if remat else "off", need / 2**30, free / 2**30)
+    log.info(
+        "remat auto: %s (the step without it takes about %.1f GiB; %.1f GiB free)",
+        "on" if remat else "off",
+        need / 2**30,
+        free / 2**30,
+    )
     return cfg.replace(remat=remat)
 
 
 def make_train_step(cfg: Config, mesh: Mesh | None = None):
     """The jitted train step; with a mesh, the batch is sharded over `data` (each device
     unrolls its own scenes, `shard_map`) and the state replicated. The state argument is
-    donated. `cfg.remat` "auto" is resolved for `cfg.batch_size` (`resolve_remat`)."""
-    cfg = resolve_remat(cfg, cfg.batch_size // (1 if mesh is None else mesh.size))
+    donated. `cfg.train.remat` "auto" is resolved for `cfg.train.batch_size` (`resolve_remat`)."""
+    cfg = resolve_remat(cfg, cfg.train.batch_size // (1 if mesh is None else mesh.size))
     options = train_compiler_options()
     if mesh is None:
-        return jax.jit(lambda state, batch: train_step(state, batch, cfg), donate_argnums=0,
-                       compiler_options=options)
-    if cfg.batch_size % mesh.size:
-        raise ValueError(f"batch_size {cfg.batch_size} is not divisible by {mesh.size} devices")
+        return jax.jit(
+            lambda state, batch: train_step(state, batch, cfg),
+            donate_argnums=0,
+            compiler_options=options,
+        )
+    if cfg.train.batch_size % mesh.size:
+        raise ValueError(
+            f"batch_size {cfg.train.batch_size} is not divisible by {mesh.size} devices"
+        )
     per_device = jax.shard_map(
         lambda state, batch: train_step(state, batch, cfg, DATA_AXIS),
         mesh=mesh,
@@ -314,29 +335,47 @@ class SplitTrainStep:
     def __init__(self, cfg: Config, state: TrainState, batch: Batch, quick: bool = False):
         scale = 1.0 / batch.actors.cls.shape[0]
         cfg = resolve_remat(cfg, batch.actors.cls.shape[0])
-        self._starts = [range(w * cfg.bptt_window, (w + 1) * cfg.bptt_window,
-                              chunk_steps(cfg)) for w in range(num_windows(cfg))]
+        self._starts = [
+            range(
+                w * cfg.model.bptt_window, (w + 1) * cfg.model.bptt_window, chunk_steps(cfg.model)
+            )
+            for w in range(num_windows(cfg.model))
+        ]
 
         def prologue(state, batch):
             maps, scene, _, _ = _step_inputs(state, batch, cfg, None)
-            map_gates, _ = map_gates_and_vjp(state.params, cfg, maps)
-            scenes, (carry, g_params, g_map) = grads_prologue(state.params, cfg, maps, scene,
-                                                              map_gates)
+            map_gates, _ = map_gates_and_vjp(state.params, cfg.model, maps)
+            scenes, (carry, g_params, g_map) = grads_prologue(
+                state.params, cfg.model, maps, scene, map_gates
+            )
             no_grad = jax.tree.map(jnp.zeros_like, carry)  # a window's last chunk's cotangent
             return maps, map_gates, scenes, carry, g_params, g_map, no_grad
 
         def forward(params, map_gates, scenes, carry, start):
-            return chunk_forward(params, map_gates, scenes, cfg, scale, carry, start)
+            return chunk_forward(
+                params,
+                map_gates,
+                scenes,
+                cfg.model,
+                scale,
+                cfg.train.hard_negatives,
+                cfg.train.remat,
+                carry,
+                start,
+            )
 
         def epilogue(state, maps, scenes, g_params, g_map, terms):
-            _, map_vjp = map_gates_and_vjp(state.params, cfg, maps)
+            _, map_vjp = map_gates_and_vjp(state.params, cfg.model, maps)
             terms = jax.tree.map(lambda *x: jnp.stack(x), *terms)
             unrolled, grads = grads_epilogue(map_vjp, scenes, (None, g_params, g_map), terms)
             return _apply_grads(state, cfg, unrolled, grads, 1, None)
 
         light = functools.partial(jax.jit, compiler_options=quick_train_compiler_options())
-        jit = light if quick else functools.partial(jax.jit,
-                                                    compiler_options=train_compiler_options())
+        jit = (
+            light
+            if quick
+            else functools.partial(jax.jit, compiler_options=train_compiler_options())
+        )
         with concurrent.futures.ThreadPoolExecutor(4) as pool:
             compiled = []
 
@@ -345,17 +384,22 @@ class SplitTrainStep:
                 return lowered.out_info
 
             maps, map_gates, scenes, carry, g_params, g_map, _ = compile_next(
-                light(prologue).lower(state, batch))
+                light(prologue).lower(state, batch)
+            )
             start = jax.ShapeDtypeStruct((), jnp.int32)
             _, chunk_terms, vjp = compile_next(
-                jit(forward).lower(state.params, map_gates, scenes, carry, start))
-            compile_next(jit(chunk_backward, donate_argnums=(2, 3)).lower(vjp, carry, g_params,
-                                                                           g_map))
+                jit(forward).lower(state.params, map_gates, scenes, carry, start)
+            )
+            compile_next(
+                jit(chunk_backward, donate_argnums=(2, 3)).lower(vjp, carry, g_params, g_map)
+            )
             terms = [chunk_terms] * sum(map(len, self._starts))
-            compile_next(light(epilogue, donate_argnums=0).lower(state, maps, scenes, g_params,
-                                                               g_map, terms))
+            compile_next(
+                light(epilogue, donate_argnums=0).lower(state, maps, scenes, g_params, g_map, terms)
+            )
             self._prologue, self._forward, self._backward, self._epilogue = (
-                c.result() for c in compiled)
+                c.result() for c in compiled
+            )
         release_freed_memory()
 
     def __call__(self, state: TrainState, batch: Batch) -> tuple[TrainState, dict]:
@@ -383,18 +427,22 @@ class QuickStartTrainStep:
     is ready. Shorter runs keep the split step with the train step's options throughout.
     `close` waits for a background compile still running."""
 
-    def __init__(self, cfg: Config, state: TrainState, batch: Batch, mesh: Mesh | None,
-                 steps: int):
+    def __init__(self, cfg: Config, state: TrainState, batch: Batch, mesh: Mesh | None, steps: int):
         # Shapes only: the split step donates the arrays before the background lowering.
-        shapes = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype,
-                                                             sharding=x.sharding),
-                              (state, batch))
+        shapes = jax.tree.map(
+            lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding), (state, batch)
+        )
         quick = steps > QUICK_START_STEPS
         self._split = SplitTrainStep(cfg, state, batch, quick)
         # Compiled one after the other, each faster than the last.
-        self._pending = [functools.partial(SplitTrainStep, cfg, *shapes, False),
-                         functools.partial(compile_train_step, cfg, *shapes, mesh)
-                         ] if quick else []
+        self._pending = (
+            [
+                functools.partial(SplitTrainStep, cfg, *shapes, False),
+                functools.partial(compile_train_step, cfg, *shapes, mesh),
+            ]
+            if quick
+            else []
+        )
         self._pool, self._compiled = None, []
 
     def __call__(self, state: TrainState, batch: Batch) -> tuple[TrainState, dict]:
@@ -414,8 +462,7 @@ class QuickStartTrainStep:
             self._pool.shutdown(wait=True)
 
 
-def train_step_for_run(cfg: Config, state: TrainState, batch: Batch, mesh: Mesh | None,
-                     steps: int):
+def train_step_for_run(cfg: Config, state: TrainState, batch: Batch, mesh: Mesh | None, steps: int):
     """The train step a run of `steps` more steps starts with: `QuickStartTrainStep` where
     `backend.quick_start_training` (XLA:CPU, one device), else `compile_train_step`. Call
     its `close` (if it has one) when the run ends."""

@@ -103,9 +103,9 @@ def reframed(cfg: Config, source_cfg: Config) -> tuple[str, ...]:
     Raises:
       ValueError where the frames differ and `cfg` has one attribute MLP for all three (its
       last layer also gives the box and velocity)."""
-    if cfg.heading_lane_frame == source_cfg.heading_lane_frame:
+    if cfg.model.heading_lane_frame == source_cfg.model.heading_lane_frame:
         return ()
-    if not cfg.separate_attribute_mlps:
+    if not cfg.model.separate_attribute_mlps:
         raise ValueError("heading_lane_frame: a warm start from a model in the other frame "
                          "needs separate_attribute_mlps (the heading's own last layer)")
     return HEADING_LAST_LAYER

@@ -46,8 +46,8 @@ def render_heatmaps(
     rows = [i for i, c in enumerate(np.asarray(heatmap_cls)) if c >= 0]
     if not rows:
         rows = [0]
-    h = cfg.grid_size
-    half = cfg.region_m / 2
+    h = cfg.grid.grid_size
+    half = cfg.grid.region_m / 2
     fig, axes = plt.subplots(1, len(rows), figsize=(3.2 * len(rows), 3.4), squeeze=False)
     valid = np.asarray(actors.valid, bool)
     for ax, i in zip(axes[0], rows, strict=True):

@@ -52,12 +52,12 @@ def draw_scene(
 ) -> None:
     """Draws one scene on `ax` in metres (ego frame); `map_raster` [H, W, len(channels)] is
     the config's grid (a cache canvas is cropped first: `raster.transform.crop_map`)."""
-    h = cfg.grid_size
+    h = cfg.grid.grid_size
     if tuple(np.shape(map_raster)) != (h, h, len(channels)):
         raise ValueError(f"map_raster: shape {tuple(np.shape(map_raster))}, config {cfg.name!r} "
                          f"needs [{h}, {h}, {len(channels)}] (a cache canvas is cropped first: "
                          "`raster.transform.crop_map`)")
-    half = cfg.region_m / 2
+    half = cfg.grid.region_m / 2
     ax.imshow(
         map_background(np.asarray(map_raster, np.float32), channels),
         extent=(-half, half, -half, half),
@@ -86,7 +86,7 @@ def draw_scene(
         lw = 2.0 if i == highlight else 0.5
         pos = np.asarray(a.position, np.float64)
         if i >= 0 and int(a.cls) == PEDESTRIAN:
-            side = cfg.pedestrian_size_m
+            side = cfg.grid.pedestrian_size_m
             ax.add_patch(plt.Circle(pos, max(side, 0.8), color=color, ec=edge, lw=lw, zorder=3))
         else:
             corners = box_corners(pos, np.asarray(a.size), float(a.heading))
