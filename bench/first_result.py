@@ -85,7 +85,8 @@ def ours(kind: str, config: str, grid: int, model: str | None) -> dict:
     from scenegen_jax.backend import concurrent_map, default_workers, scoring_compiler_options
     from scenegen_jax.eval.nll import score_batch
     from scenegen_jax.pretrained import load_pretrained
-    from scenegen_jax.train.step import init_state, train_step_for_run
+    from scenegen_jax.train.programs import train_step_for_run
+    from scenegen_jax.train.step import init_state
 
     t_import = process_age_s()
     if kind == "train":

@@ -99,7 +99,7 @@ def test_split_train_step_equals_the_one_program_step(tiny_train_cache, small_sc
     it in the background."""
     from scenegen_jax.likelihood.grads import chunk_steps
     from scenegen_jax.likelihood.unroll import num_windows
-    from scenegen_jax.train.step import SplitTrainStep
+    from scenegen_jax.train.programs import SplitTrainStep
 
     cfg = CFG.replace(rotate_augment=True, bptt_window=6)
     assert chunk_steps(cfg.model) == 3 and num_windows(cfg.model) == 2
@@ -133,7 +133,7 @@ def test_quick_start_swaps_in_the_one_program_step_once_compiled(monkeypatch):
     import threading
 
     from scenegen_jax.backend import QUICK_START_STEPS
-    from scenegen_jax.train import step as step_module
+    from scenegen_jax.train import programs
 
     gates = {False: threading.Event(), "fused": threading.Event()}
     background, calls = threading.Event(), []
@@ -149,15 +149,15 @@ def test_quick_start_swaps_in_the_one_program_step_once_compiled(monkeypatch):
         gates["fused"].wait(timeout=30)
         return lambda state, batch: ("fused", state)
 
-    monkeypatch.setattr(step_module, "SplitTrainStep", split)
-    monkeypatch.setattr(step_module, "compile_train_step", compile_fused)
+    monkeypatch.setattr(programs, "SplitTrainStep", split)
+    monkeypatch.setattr(programs, "compile_train_step", compile_fused)
     state, batch = (jnp.zeros(2), jnp.ones(3)), jnp.ones(4)
-    short = step_module.QuickStartTrainStep(CFG, state, batch, None, QUICK_START_STEPS)
+    short = programs.QuickStartTrainStep(CFG, state, batch, None, QUICK_START_STEPS)
     assert short(state, batch)[0] == "split"
     short.close()
     assert short(state, batch)[0] == "split"  # no background compile at all
     background.set()
-    quick = step_module.QuickStartTrainStep(CFG, state, batch, None, QUICK_START_STEPS + 1)
+    quick = programs.QuickStartTrainStep(CFG, state, batch, None, QUICK_START_STEPS + 1)
     assert calls == [False, True]  # nothing compiles beside the first step
     assert quick(state, batch)[0] == "quick"
     assert quick(state, batch)[0] == "quick"  # the split step still compiling

@@ -27,13 +27,13 @@ from scenegen_jax.likelihood.batch import check_batch, gather_batch, local_rows,
 from scenegen_jax.likelihood.terms import VEHICLE_TERMS
 from scenegen_jax.scene import CLASS_NAMES
 from scenegen_jax.train.data import resolve_weights, union_indices
+from scenegen_jax.train.programs import train_step_for_run
 from scenegen_jax.train.step import (
     TrainState,
     init_state,
     make_optimizer,
     resolve_remat,
     start_ema,
-    train_step_for_run,
 )
 from scenegen_jax.train.warm_start import reframed, start_params, warm_start
 from scenegen_jax.workdir import (
