@@ -1,9 +1,11 @@
-"""Output files written whole or not at all (standard library only)."""
+"""Files: outputs written whole or not at all, and a data set's input files found under its
+root (standard library only)."""
 
 from __future__ import annotations
 
 import contextlib
 import os
+from pathlib import Path
 
 
 @contextlib.contextmanager
@@ -28,3 +30,32 @@ def written_whole(path: str):
     finally:
         if os.path.exists(tmp):
             os.remove(tmp)
+
+
+def files_under(root: str | os.PathLike, suffix: str, skip: tuple[str, ...] = ()) -> list[Path]:
+    """Sorted files named `*suffix` under `root`, recursively, following symbolic links to
+    files and folders (a data set assembled from links reads as a copy would), each file once:
+    a file reached by two paths (two links, a link and its target) is listed by the first
+    path in sorted order, and a link back to a folder above is not walked again. Names in
+    `skip` are left out.
+
+    Raises:
+      FileNotFoundError: `root` is not a directory.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"{root}: not a directory")
+    found: dict[str, Path] = {}
+    walked: set[str] = set()
+    for folder, dirs, names in os.walk(root, followlinks=True):
+        real = os.path.realpath(folder)
+        if real in walked:  # a link to a folder already walked (or to an ancestor)
+            dirs[:] = []
+            continue
+        walked.add(real)
+        dirs.sort()
+        for name in names:
+            path = Path(folder, name)
+            if name.endswith(suffix) and name not in skip and path.is_file():
+                found.setdefault(os.path.realpath(path), path)
+    return sorted(set(found.values()))

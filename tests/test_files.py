@@ -1,4 +1,5 @@
-"""Output files written whole or not at all (`scenegen_jax.files.written_whole`)."""
+"""Output files written whole or not at all (`scenegen_jax.files.written_whole`), and a data
+set's files found under its root through links (`files_under`)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,8 @@ import stat
 import pytest
 
 from scenegen_jax.data.safe_pickle import dump_pickle, load_pickle
-from scenegen_jax.files import written_whole
+from scenegen_jax.data.sources import source_files, source_spec
+from scenegen_jax.files import files_under, written_whole
 
 
 def test_a_failed_write_leaves_the_earlier_file_and_no_temporary(tmp_path):
@@ -65,3 +67,38 @@ def test_figures_keep_the_format_of_their_name(tmp_path):
         path = tmp_path / (name if "." in name else f"{name}.png")
         assert path.read_bytes().startswith(head), name
     assert sorted(os.listdir(tmp_path)) == ["a.png", "b.png", "c.svg"]
+
+
+def test_files_under_follows_links_once_each(tmp_path):
+    root, other = tmp_path / "root", tmp_path / "other"
+    (root / "sub").mkdir(parents=True)
+    (other / "deep").mkdir(parents=True)
+    for path in (root / "a.json", root / "sub" / "b.json", other / "c.json",
+                 other / "deep" / "d.json", root / "summary.json", root / "e.txt"):
+        path.write_text("{}")
+    (root / "linked").symlink_to(other)  # a folder of links: walked
+    (root / "c_again.json").symlink_to(other / "c.json")  # a second path to c.json
+    (root / "sub" / "a_link.json").symlink_to(root / "a.json")
+    (root / "sub" / "loop").symlink_to(root)  # back to an ancestor: not walked again
+    (root / "dangling.json").symlink_to(tmp_path / "missing.json")
+    got = [p.relative_to(root).as_posix() for p in files_under(root, ".json",
+                                                                 skip=("summary.json",))]
+    # Each file once, by its first path in sorted order.
+    assert got == ["a.json", "c_again.json", "linked/deep/d.json", "sub/b.json"]
+    with pytest.raises(FileNotFoundError, match="not a directory"):
+        files_under(root / "a.json", ".json")
+
+
+@pytest.mark.parametrize("kind, folder, suffix", [("scenarionet", "scenarionet", ".pkl"),
+                                                  ("womd_json", "gpudrive_json", ".json")])
+def test_a_dataset_of_linked_folders_reads_every_file(tmp_path, womd_root, kind, folder,
+                                                      suffix):
+    # One real val file linked in, and the whole real train folder linked as a sub-folder.
+    data = os.path.join(womd_root, folder)
+    train = sorted(n for n in os.listdir(os.path.join(data, "train")) if n.endswith(suffix))
+    val = sorted(n for n in os.listdir(os.path.join(data, "val")) if n.endswith(suffix))
+    (tmp_path / val[0]).symlink_to(os.path.join(data, "val", val[0]))
+    (tmp_path / "more").symlink_to(os.path.join(data, "train"))
+    files = source_files(source_spec(kind, str(tmp_path)))
+    assert [os.path.basename(f) for f in files] == [val[0], *train]
+    assert len(train) > 10

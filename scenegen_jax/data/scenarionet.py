@@ -99,6 +99,7 @@ from scenegen_jax.data.scenarionet_tracks import (
     scenario_sample_rate_hz,
     velocity_mismatch,
 )
+from scenegen_jax.files import files_under
 from scenegen_jax.frame import Frame, drop_beyond_limits
 from scenegen_jax.scene import PEDESTRIAN, VEHICLE, wrap_angle
 from scenegen_jax.vector_map import rotation_matrix
@@ -378,13 +379,9 @@ def _frame_at(t: int, read: dict, sdc_id: str, ego_size: tuple[float, float], wo
 
 
 def scenario_files(root: str | os.PathLike) -> list[Path]:
-    """Sorted scenario pickles under `root` (recursive), without the dataset summary/mapping."""
-    root = Path(root)
-    if not root.is_dir():
-        raise FileNotFoundError(f"{root}: not a directory")
-    files = sorted(
-        p for p in root.rglob("*.pkl") if p.is_file() and p.name not in (SUMMARY_FILE, MAPPING_FILE)
-    )
+    """Sorted scenario pickles under `root` (`files.files_under`: recursive, links followed,
+    each file once), without the dataset summary/mapping."""
+    files = files_under(root, ".pkl", skip=(SUMMARY_FILE, MAPPING_FILE))
     if not files:
         raise FileNotFoundError(f"{root}: no ScenarioNet scenario files (*.pkl)")
     return files

@@ -43,6 +43,7 @@ from scenegen_jax.data.surface import (
     outline_lanes,
     stacked_normals,
 )
+from scenegen_jax.files import files_under
 from scenegen_jax.frame import Frame
 from scenegen_jax.jsonfile import read_json
 from scenegen_jax.scene import BICYCLIST, PEDESTRIAN, VEHICLE, wrap_angle
@@ -421,11 +422,9 @@ def frames_from_scenario(
 
 
 def scenario_files(root: str | os.PathLike) -> list[Path]:
-    """Sorted `*.json` scenario files under `root` (recursive)."""
-    root = Path(root)
-    if not root.is_dir():
-        raise FileNotFoundError(f"{root}: not a directory")
-    files = sorted(p for p in root.rglob("*.json") if p.is_file())
+    """Sorted `*.json` scenario files under `root` (`files.files_under`: recursive, links
+    followed, each file once)."""
+    files = files_under(root, ".json")
     if not files:
         raise FileNotFoundError(f"{root}: no GPUDrive / Nocturne JSON files (*.json)")
     return files
