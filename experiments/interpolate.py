@@ -61,7 +61,10 @@ def main() -> None:
         if not 0.0 <= a <= 1.0:
             raise SystemExit(f"--alpha {a}: must lie in [0, 1]")
     cfg_s, start = start_params(args.start)
-    _, tuned, step_t = load_params(args.tuned)
+    cfg_t, tuned, step_t = load_params(args.tuned)
+    if cfg_s.model != cfg_t.model:
+        raise SystemExit(f"{args.start} and {args.tuned}: not the same model ("
+                         f"{'; '.join(d for d in cfg_s.differences(cfg_t))})")
     if not same_tree(start, tuned):
         raise SystemExit(f"{args.start} and {args.tuned}: not the same model (their parameter "
                          "trees differ in structure or shapes)")

@@ -247,7 +247,8 @@ def main() -> None:
     )
     args = parser.parse_args()
     cache = load_cache(args.cache)
-    still_mps = float(cache.meta["config"]["zero_speed"]) if args.by_place else None
+    saved = Config.from_json(json.dumps(cache.meta["config"]), f"{args.cache}/meta.json")
+    still_mps = float(saved.grid.zero_speed) if args.by_place else None
     scenes = list(
         sampled_scenes(args.samples, args.cls) if args.samples else real_scenes(cache, args.cls)
     )

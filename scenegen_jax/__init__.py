@@ -23,7 +23,7 @@ _EXPORTS = {
     "load_model": "scenegen_jax.api",
     "load_data": "scenegen_jax.api",
     "prepare": "scenegen_jax.api",
-    "train": "scenegen_jax.api",
+    "train_model": "scenegen_jax.api",
     "score": "scenegen_jax.api",
     "sample": "scenegen_jax.api",
     "evaluate": "scenegen_jax.api",
@@ -46,4 +46,4 @@ def __getattr__(name: str) -> Any:
 
 
 def __dir__() -> list[str]:
-    return sorted([*globals(), *_EXPORTS])
+    return sorted([*__all__, "__version__"])

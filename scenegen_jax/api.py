@@ -1,5 +1,7 @@
 """The public Python API: one `Model` (config and parameters together) that every function
-takes first, around the library's modules (`import scenegen_jax as sg`).
+reading a trained model takes first (`prepare` takes it, or a config, after the source and
+paths; `train_model` a config), around the library's modules (`import scenegen_jax as
+sg`).
 
     model = sg.load_model("cpu-av2-womd")
     data = sg.prepare("av2", "../shared/data/av2_sensor_mini", "runs/av2_val", model,
@@ -85,15 +87,21 @@ def _uncommitted(params):
     return jax.device_put(jax.device_get(params))
 
 
-def _config_of(model_or_config: Model | Config | str) -> Config:
+def _config_of(model_or_config: Model | Config | str, where: str,
+               models: bool = True) -> Config:
+    """The config of a Model (where `models`), a Config or a preset name, else a TypeError
+    saying what `where` expects."""
     if isinstance(model_or_config, Model):
+        if not models:
+            raise TypeError(f"{where}: expected a Config or a preset name, got a Model (to "
+                            f"start from its parameters: init_from={model_or_config.source!r})")
         return model_or_config.config
     if isinstance(model_or_config, Config):
         return model_or_config
     if isinstance(model_or_config, str):
         return get_config(model_or_config)
-    raise TypeError("expected a Model, a Config or a preset name, got "
-                    f"{type(model_or_config).__name__}")
+    kinds = "a Model, a Config or a preset name" if models else "a Config or a preset name"
+    raise TypeError(f"{where}: expected {kinds}, got {type(model_or_config).__name__}")
 
 
 def prepare(source: str, root: str, out: str, model_or_config: Model | Config | str,
@@ -104,7 +112,10 @@ def prepare(source: str, root: str, out: str, model_or_config: Model | Config | 
     from scenegen_jax.data.prepare import prepare as prepare_cache
     from scenegen_jax.data.sources import DEFAULT_STRIDE, source_spec
 
-    cfg = _config_of(model_or_config)
+    if not isinstance(source, str):
+        raise TypeError(f"prepare: expected the source kind first ('av2', 'womd_json' or "
+                        f"'scenarionet'), got {type(source).__name__}")
+    cfg = _config_of(model_or_config, "prepare")
     spec = source_spec(source, root, split, DEFAULT_STRIDE if stride is None else stride)
     prepare_cache(spec, out, cfg, workers=workers)
     return load_union(out, cfg)
@@ -115,14 +126,14 @@ def load_data(model: Model, paths: str | Sequence[str]) -> CacheUnion:
     return load_union(paths, check_model(model, "load_data").config)
 
 
-def train(config: Config | str, data: str | Sequence[str], workdir: str, steps: int,
-          **options: Any) -> Model:
+def train_model(config: Config | str, data: str | Sequence[str], workdir: str, steps: int,
+                **options: Any) -> Model:
     """Trains (or resumes) a model of `config` (a `Config` or a preset name) on caches in
     `workdir` for `steps` steps (`train.loop.train`'s `options`: save_every, init_from,
     weights, ...) and returns it."""
     from scenegen_jax.train.loop import train as train_loop
 
-    cfg = _config_of(config)
+    cfg = _config_of(config, "train_model", models=False)
     state = train_loop(cfg, data, workdir, steps, **options)
     return Model(cfg, _uncommitted(state.ema if cfg.train.ema_decay > 0 else state.params),
                  int(state.step), {}, workdir)

@@ -216,20 +216,20 @@ def winograd_convolutions(kernel: tuple[int, ...], tiles: int) -> bool:
 
 
 # Runs of more steps than this compile the one-program train step in the background while
-# they start on the split one (`train.step.QuickStartTrainStep`); shorter runs keep the split
+# they start on the split one (`train.programs.QuickStartTrainStep`); shorter runs keep the split
 # step throughout (its compile saved outweighs its slower steps).
 QUICK_START_STEPS = 100
 
 
-# Steps of a window per pair of programs of the split train step (`likelihood.unroll.
-# chunk_steps`, `train.step.SplitTrainStep`): chunks of 5 compile several times faster than
+# Steps of a window per pair of programs of the split train step (`likelihood.grads.
+# chunk_steps`, `train.programs.SplitTrainStep`): chunks of 5 compile several times faster than
 # the whole window and run as fast; chunks of 1 compile faster still but run slower.
 SPLIT_CHUNK_STEPS = 5
 
 
 def quick_start_training() -> bool:
     """Whether training starts on the train step split into programs of a few steps
-    (`train.step.QuickStartTrainStep`): on XLA:CPU, whose one-program step unrolls every
+    (`train.programs.QuickStartTrainStep`): on XLA:CPU, whose one-program step unrolls every
     window and compiles for tens of seconds before the first step. On accelerators the
     windows already run as a compiled loop."""
     return on_cpu()
@@ -251,7 +251,7 @@ def quick_train_compiler_options() -> dict | None:
     a faster program takes over: `train_compiler_options` with `_quickest_compile`; None on
     other backends. The split step's prologue and epilogue (the optimizer's update) always,
     its chunk programs where faster programs take over after the first step
-    (`train.step.QuickStartTrainStep`), since at this level a chunk program compiles several
+    (`train.programs.QuickStartTrainStep`), since at this level a chunk program compiles several
     times faster but runs its steps about twice as slowly."""
     return {**train_compiler_options(), **_quickest_compile()} if on_cpu() else None
 

@@ -35,9 +35,10 @@ def written_whole(path: str):
 def files_under(root: str | os.PathLike, suffix: str, skip: tuple[str, ...] = ()) -> list[Path]:
     """Sorted files named `*suffix` under `root`, recursively, following symbolic links to
     files and folders (a data set assembled from links reads as a copy would), each file once:
-    a file reached by two paths (two links, a link and its target) is listed by the first
-    path in sorted order, and a link back to a folder above is not walked again. Names in
-    `skip` are left out.
+    a file reached by two paths (two links, a link and its target) is listed by the path
+    the walk meets first (a folder's files, by name, before its sub-folders, by name), and
+    a link back to a folder already walked is not walked again. Names in `skip` are left
+    out.
 
     Raises:
       FileNotFoundError: `root` is not a directory.
@@ -54,7 +55,7 @@ def files_under(root: str | os.PathLike, suffix: str, skip: tuple[str, ...] = ()
             continue
         walked.add(real)
         dirs.sort()
-        for name in names:
+        for name in sorted(names):
             path = Path(folder, name)
             if name.endswith(suffix) and name not in skip and path.is_file():
                 found.setdefault(os.path.realpath(path), path)

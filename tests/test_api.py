@@ -78,6 +78,11 @@ def test_wrong_argument_order_is_a_type_error(quick_start):
         sg.score(model, model)
     with pytest.raises(TypeError, match="expected sampled scenes"):
         sg.render(model, [cache], "x.png")
+    with pytest.raises(TypeError, match="prepare: expected the source kind first"):
+        sg.prepare(model, "av2", "../shared/data/av2_sensor_mini", "x")
+    with pytest.raises(TypeError, match="train_model: expected a Config or a preset name, "
+                       "got a Model"):
+        sg.train_model(model, cache.path, "w", 1)
 
 
 def test_load_model_refuses_a_step_for_a_pretrained_model():
@@ -95,5 +100,9 @@ def test_namespace_is_lazy_and_complete():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True)
     assert int(out.stdout) == len(sg.__all__) >= 10
+    # A name of a sub-module would be shadowed by that module once anything imports it.
+    package = os.path.dirname(sg.__file__)
+    modules = {n.removesuffix(".py") for n in os.listdir(package)}
+    assert not set(sg.__all__) & modules
     with pytest.raises(AttributeError, match="no attribute 'nope'"):
         sg.nope  # noqa: B018

@@ -73,3 +73,6 @@ def test_tiny_recipe_end_to_end(tmp_path, data_root):
     run_recipe(recipe, workdir, str(tmp_path / "caches"), shared, runs=["map"],
                progress=False)
     assert os.path.getmtime(os.path.join(workdir, "map", "box", "metrics.jsonl")) == before
+    with pytest.raises(ValueError, match="include it in --run"):
+        run_recipe(recipe, workdir, str(tmp_path / "caches"), shared, runs=["nomap"], out=out,
+                   progress=False)

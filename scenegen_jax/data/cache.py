@@ -7,6 +7,7 @@ memory-mapped; several caches stacked as one (`stack_caches`) and checked agains
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import os
 import tokenize
@@ -224,6 +225,15 @@ SHARD_SHARED_FIELDS = (
 )
 
 
+def _shared_value(cache: Cache, field: str):
+    """A meta.json field as shards compare it: the config as the config it reads as (a
+    one-level config of an older shard equals the nested one of a newer)."""
+    value = cache.meta.get(field)
+    if field == "config" and isinstance(value, dict):
+        return Config.from_json(json.dumps(value), f"{cache.path}/meta.json")
+    return value
+
+
 def _load_sharded(path: str) -> Cache:
     """The shards `shard-I-of-N` of `path` as one cache; every shard must be there."""
     found = {}
@@ -248,7 +258,7 @@ def _load_sharded(path: str) -> Cache:
     first = shards[0].meta
     for shard in shards[1:]:
         for field in SHARD_SHARED_FIELDS:
-            if shard.meta.get(field) != first.get(field):
+            if _shared_value(shard, field) != _shared_value(shards[0], field):
                 raise ValueError(
                     f"{shard.path}/meta.json: field {field} differs from "
                     f"{shards[0].path}'s; prepare every shard with the same "

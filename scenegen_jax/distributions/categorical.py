@@ -143,7 +143,7 @@ def sample_location(
     Args:
       key: PRNG key.
       logits: [H*W] location logits, row-major bins.
-      grid: config (grid_size, m_per_px).
+      grid: the grid (`GridConfig`: grid_size, m_per_px).
       mask: optional bool [H*W] of allowed bins (e.g. `ordering_mask`).
 
     Returns:

@@ -5,7 +5,7 @@ No gradient crosses a window boundary (truncated BPTT), so each window's backwar
 right after its forward pass (`window_grads`), and the train step holds one window's
 activations (`unroll_terms_and_grads`). The map share of layer 1's input gates is computed
 once per scene; its gradient is summed over the windows and taken through the map
-convolution once. `train.step.SplitTrainStep` runs the prologue and epilogue as programs of
+convolution once. `train.programs.SplitTrainStep` runs the prologue and epilogue as programs of
 their own, and each window as chunks (`chunk_forward`, `chunk_backward`).
 """
 
@@ -74,7 +74,7 @@ def window_grads(params, map_gates, scenes: Scenes, cfg: ModelConfig, scale,
 
 def chunk_steps(cfg: ModelConfig) -> int:
     """Steps of a window that one call of `chunk_forward` runs when a train step goes chunk by
-    chunk (`train.step.SplitTrainStep`): the largest divisor of `cfg.bptt_window` up to
+    chunk (`train.programs.SplitTrainStep`): the largest divisor of `cfg.bptt_window` up to
     `backend.SPLIT_CHUNK_STEPS`."""
     return max(d for d in range(1, backend.SPLIT_CHUNK_STEPS + 1) if cfg.bptt_window % d == 0)
 
@@ -127,7 +127,7 @@ def unroll_terms_and_grads(params, cfg: ModelConfig, maps, scene: Scene, scale,
     unrolled, `scan_windows`). The map share of layer 1's input gates is still computed
     once per scene; its gradient is summed over the windows and taken through the map
     convolution once. Equal to `jax.grad` of that sum through `unroll_terms` (tested).
-    `train.step.SplitTrainStep` runs `grads_prologue` and `grads_epilogue` as programs of
+    `train.programs.SplitTrainStep` runs `grads_prologue` and `grads_epilogue` as programs of
     their own, and each window as chunks (`chunk_forward`, `chunk_backward`).
     """
     map_gates, map_vjp = map_gates_and_vjp(params, cfg, maps)

@@ -54,7 +54,7 @@ def window_size(grid: GridConfig, max_box_m: float = DEFAULT_MAX_BOX_M) -> int:
     """Side P (px, static) of the square window in which one box is drawn; H if P >= H.
 
     Args:
-      grid: config (grid_size, m_per_px).
+      grid: the grid (`GridConfig`: grid_size, m_per_px).
       max_box_m: largest box diagonal, m, drawn without clipping (a 2 px margin is added).
     """
     radius = math.ceil(max_box_m / (2.0 * grid.m_per_px)) + 1
@@ -91,7 +91,7 @@ def box_coverage_window(
       center: [2] (x, y) m.
       size: [2] (width, length) m; length lies along the heading.
       heading: [] rad.
-      grid: config (grid).
+      grid: the grid (`GridConfig`).
       samples: s, sub-cells per pixel side (static).
       max_box_m: see `window_size`.
 
@@ -136,7 +136,7 @@ def box_coverage(
       center: [2] (x, y) m.
       size: [2] (width, length) m; length lies along the heading.
       heading: [] rad.
-      grid: config (grid).
+      grid: the grid (`GridConfig`).
       samples: s, sub-cells per pixel side (static).
       max_box_m: see `window_size`.
     """
@@ -186,7 +186,7 @@ def draw_actor(
       raster: float32 [H, W, 9] (`ACTOR_CHANNELS`).
       actor: one actor (no leading axis).
       is_ego: draw into the ego occupancy channel instead of the class's.
-      grid: config (grid, pedestrian_size_m, zero_speed).
+      grid: the grid (`GridConfig`: size, resolution, pedestrian_size_m, zero_speed).
       samples: s, sub-cells per pixel side (static).
       max_box_m: see `window_size`.
 
@@ -229,7 +229,7 @@ def rasterize_actors(
     Args:
       actors: [N] actor slots.
       ego: one actor (no leading axis).
-      grid: config.
+      grid: the grid (`GridConfig`).
       upto: number of leading slots to draw (Python int or int array; clipped to [0, N]).
       samples: s, sub-cells per pixel side (static).
       max_box_m: see `window_size`.
@@ -266,7 +266,7 @@ def actor_rasters_sequence(
     Args:
       actors: [N] actor slots.
       ego: one actor (no leading axis).
-      grid: config.
+      grid: the grid (`GridConfig`).
       samples: s, sub-cells per pixel side (static).
       max_box_m: see `window_size`.
     """

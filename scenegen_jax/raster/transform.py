@@ -27,7 +27,7 @@ def crop_map(canvas, theta, grid: GridConfig):
     Args:
       canvas: [S, S, len(ALL_MAP_CHANNELS)] map canvas at grid.m_per_px, S = grid.canvas_size.
       theta: rotation, rad (counter-clockwise; 0 is a plain centre crop).
-      grid: config (grid, resolution, map layers).
+      grid: the grid (`GridConfig`: size, resolution, map layers).
     Returns:
       [H, W, len(grid.map_channels)] float32 map channels.
     """
@@ -73,7 +73,7 @@ def scene_from_cached(canvas, actors: Actors, ego: Actors, theta, grid: GridConf
       actors: cached actors (any number of slots >= grid.max_actors), unrotated.
       ego: unbatched ego.
       theta: rotation about the ego, rad.
-      grid: config.
+      grid: the grid (`GridConfig`).
     Returns:
       (map [H, W, C], Scene with grid.max_actors slots in canonical order, overflow count)
       where overflow counts in-region actors beyond grid.max_actors (dropped; the Scene is

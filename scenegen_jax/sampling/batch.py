@@ -186,9 +186,9 @@ def sample_split(keys: jax.Array, params: Any, maps, egos: Actors, given: Actors
     call, the accelerator default) has its maps split over the devices (a `data` mesh).
     Scenes run one at a time are never left whole: a batch of one scene on several devices
     would otherwise run, padded, as a sharded program of its own, whose rounding differs
-    (a float step in a box size). Each scene is the same on any
-    number of devices with the same threads (XLA:CPU splits loops by its thread pool, whose
-    size is the larger of the cores and the devices: README).
+    (a float step in a box size). Each scene is the same on any number of devices with the
+    same threads (XLA:CPU splits loops by its thread pool, whose size is the larger of the
+    cores and the devices: docs/scaling.md, Determinism).
 
     Args:
       keys, params, maps, egos, given, caps, cfg, options, model: as in `sample_batch`.

@@ -352,7 +352,7 @@ def rollout(
       params: network parameters (or whatever `model` takes).
       map_raster: float32 [H, W, Cm] map channels, already cropped to the grid.
       ego: the ego (Actors without a leading axis).
-      cfg: config (grid, max_actors N, proposals, zero_speed, pedestrian_size_m).
+      cfg: the model config (its grid: max_actors N, zero_speed, pedestrian_size_m).
       given: optional Actors [G <= N] to condition on, inside the region with valid values
         (validate on the host, e.g. `Scene.validate` or `export.actors_from_records`); they
         are put in canonical order (a no-op when they already are).

@@ -77,12 +77,14 @@ def run_recipe(recipe: Recipe, workdir: str, cache_dir: str, data_root: str,
     from scenegen_jax.pretrained import save_pretrained
 
     selected = [recipe.run(name) for name in runs] if runs else list(recipe.runs)
+    if out is not None and recipe.model_run not in [run.name for run in selected]:
+        raise ValueError(f"--out exports the recipe's model, run {recipe.model_run!r}: "
+                         f"include it in --run (or leave --run out)")
     needed = sorted({n for run in selected for phase in run.phases for n in phase.data})
     caches = prepare_caches(recipe, cache_dir, data_root, needed)
     done = {run.name: train_run(recipe, run, workdir, caches, progress) for run in selected}
     if out is not None:
-        final = done.get(recipe.model_run) or phase_workdir(
-            workdir, recipe.run(recipe.model_run), -1)
+        final = done[recipe.model_run]
         cfg, params, step = load_params(final)
         save_pretrained(out, cfg, params, step, final, dict(recipe.sampler))
     return done

@@ -226,7 +226,7 @@ def train_step(
 
 # The train step's buffers without remat, bytes per scene, step of a window and pixel of the
 # grid: STEP_BYTES_PER_CHANNEL per hidden channel plus STEP_BYTES_FIXED, fitted to XLA's
-# buffer plans (`memory_analysis`) at hidden 16 and 32 and grids 32 to 320; tests/test_train.py
+# buffer plans (`memory_analysis`) at hidden 16 and 32 and grids 32 to 320; tests/test_train_step.py
 # holds the estimate within 10 % of the plan.
 STEP_BYTES_PER_CHANNEL = 60
 STEP_BYTES_FIXED = 2800
