@@ -71,9 +71,10 @@ def train_run(recipe: Recipe, run: Run, workdir: str, caches: dict[str, str],
 
 def run_recipe(recipe: Recipe, workdir: str, cache_dir: str, data_root: str,
                runs: list[str] | None = None, out: str | None = None,
-               progress: bool = True) -> dict:
+               progress: bool = True, workers: int | None = None) -> dict:
     """Runs `recipe` (or only its `runs`) and, with `out`, exports its model run's last
-    phase there as a pretrained model. Returns {run name: last phase's workdir}."""
+    phase there as a pretrained model; `workers`: processes preparing a missing cache
+    (default one per core). Returns {run name: last phase's workdir}."""
     from scenegen_jax.pretrained import save_pretrained
 
     selected = [recipe.run(name) for name in runs] if runs else list(recipe.runs)
@@ -81,7 +82,7 @@ def run_recipe(recipe: Recipe, workdir: str, cache_dir: str, data_root: str,
         raise ValueError(f"--out exports the recipe's model, run {recipe.model_run!r}: "
                          f"include it in --run (or leave --run out)")
     needed = sorted({n for run in selected for phase in run.phases for n in phase.data})
-    caches = prepare_caches(recipe, cache_dir, data_root, needed)
+    caches = prepare_caches(recipe, cache_dir, data_root, needed, workers)
     done = {run.name: train_run(recipe, run, workdir, caches, progress) for run in selected}
     if out is not None:
         final = done[recipe.model_run]
