@@ -107,14 +107,15 @@ def _config_of(model_or_config: Model | Config | str, where: str,
 def prepare(source: str, root: str, out: str, model_or_config: Model | Config | str,
             split: str | None = None, stride: int | None = None,
             workers: int | None = None) -> CacheUnion:
-    """Reads a data set (`source`: "av2", "womd_json" or "scenarionet", under `root`) into a
-    cache at `out` for the grid of a model, config or preset; returns it opened."""
+    """Reads a data set (`source`: one of `data.sources.SOURCES`, e.g. "av2", "womd", under
+    `root`) into a cache at `out` for the grid of a model, config or preset; returns it
+    opened."""
     from scenegen_jax.data.prepare import prepare as prepare_cache
-    from scenegen_jax.data.sources import DEFAULT_STRIDE, source_spec
+    from scenegen_jax.data.sources import DEFAULT_STRIDE, SOURCES, source_spec
 
     if not isinstance(source, str):
-        raise TypeError(f"prepare: expected the source kind first ('av2', 'womd_json' or "
-                        f"'scenarionet'), got {type(source).__name__}")
+        raise TypeError(f"prepare: expected the source kind first (one of {SOURCES}), got "
+                        f"{type(source).__name__}")
     cfg = _config_of(model_or_config, "prepare")
     spec = source_spec(source, root, split, DEFAULT_STRIDE if stride is None else stride)
     prepare_cache(spec, out, cfg, workers=workers)
@@ -144,7 +145,7 @@ class Scores:
     """The likelihood of every scene of a cache.
 
     per_step: term -> float [S, T] NLL (nats), "step_valid" bool [S, T], "step_cls" int
-      [S, T] (`eval.nll.score_cache`).
+      [S, T], "step_size_measured" bool [S, T] (`eval.nll.score_cache`).
     """
 
     per_step: Mapping[str, np.ndarray]

@@ -80,6 +80,23 @@ def typed_value(key: str, value: Any, want: type, source: str) -> Any:
     return value
 
 
+# Integer fields become int32 arrays and shapes in the compiled programs, the seed a 32-bit
+# key (JAX's keys and numpy's generators; larger ones would wrap onto these or overflow).
+INT_LIMIT = 2**31
+SEED_LIMIT = 2**32
+
+
+def int_problem(name: str, value: Any, least: int, below: int = INT_LIMIT) -> str | None:
+    """Why the integer field `name` cannot be `value` (not an integer, < `least`, or not
+    below `below`); None if it can."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < least:
+        return f"{name}: must be an integer >= {least}, got {value!r}"
+    if value >= below:
+        return f"{name}: must be an integer below {below} (2**{below.bit_length() - 1}), got " \
+               f"{value}"
+    return None
+
+
 def config_problems(cfg) -> list[str]:
     """Every field value of `cfg` that cannot work, with the reason (empty if none)."""
     out = []
@@ -96,16 +113,15 @@ def config_problems(cfg) -> list[str]:
         out.append(f"train_layers: {absent} not in map_layers {list(cfg.map_layers)}")
     positive_ints = ("grid_size", "max_actors", "hidden", "backbone_layers", "gn_groups",
                      "num_mixtures", "hard_negatives", "bptt_window", "batch_size", "proposals")
-    for name in positive_ints:
-        v = getattr(cfg, name)
-        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-            out.append(f"{name}: must be an integer >= 1, got {v!r}")
+    out += [p for name in positive_ints if (p := int_problem(name, getattr(cfg, name), 1))]
+    if problem := int_problem("seed", cfg.seed, 0, SEED_LIMIT):
+        out.append(problem)
     if isinstance(cfg.hidden, int) and isinstance(cfg.gn_groups, int) and cfg.gn_groups >= 1 \
             and cfg.hidden % cfg.gn_groups:
         out.append(f"gn_groups: must divide hidden ({cfg.hidden}), got {cfg.gn_groups}")
     bins = cfg.orientation_bins
-    if isinstance(bins, bool) or not isinstance(bins, int) or bins < 0:
-        out.append(f"orientation_bins: must be an integer >= 0, got {bins!r}")
+    if problem := int_problem("orientation_bins", bins, 0):
+        out.append(problem)
     elif bins and "lanes" not in cfg.map_layers:
         out.append("orientation_bins: needs the 'lanes' map layers (the lane orientation), "
                    f"got map_layers {cfg.map_layers!r}")
@@ -123,10 +139,8 @@ def config_problems(cfg) -> list[str]:
         v = getattr(cfg, name)
         if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
             out.append(f"{name}: must be a finite number > 0, got {v!r}")
-    for name in ("warmup_steps", "decay_steps"):
-        value = getattr(cfg, name)
-        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-            out.append(f"{name}: must be an integer >= 0, got {value!r}")
+    out += [p for name in ("warmup_steps", "decay_steps")
+            if (p := int_problem(name, getattr(cfg, name), 0))]
     for name in ("grad_clip", "zero_speed"):
         v = getattr(cfg, name)
         if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):

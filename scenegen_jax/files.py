@@ -32,13 +32,15 @@ def written_whole(path: str):
             os.remove(tmp)
 
 
-def files_under(root: str | os.PathLike, suffix: str, skip: tuple[str, ...] = ()) -> list[Path]:
+def files_under(root: str | os.PathLike, suffix: str, skip: tuple[str, ...] = (), *,
+                infix: bool = False) -> list[Path]:
     """Sorted files named `*suffix` under `root`, recursively, following symbolic links to
     files and folders (a data set assembled from links reads as a copy would), each file once:
     a file reached by two paths (two links, a link and its target) is listed by the path
     the walk meets first (a folder's files, by name, before its sub-folders, by name), and
     a link back to a folder already walked is not walked again. Names in `skip` are left
-    out.
+    out. With `infix`, names that hold `suffix` anywhere count (`*suffix*`: Waymo names its
+    shards `training.tfrecord-00000-of-01000`).
 
     Raises:
       FileNotFoundError: `root` is not a directory.
@@ -57,6 +59,7 @@ def files_under(root: str | os.PathLike, suffix: str, skip: tuple[str, ...] = ()
         dirs.sort()
         for name in sorted(names):
             path = Path(folder, name)
-            if name.endswith(suffix) and name not in skip and path.is_file():
+            matches = suffix in name if infix else name.endswith(suffix)
+            if matches and name not in skip and path.is_file():
                 found.setdefault(os.path.realpath(path), path)
     return sorted(set(found.values()))

@@ -27,6 +27,9 @@ class Frame:
       ego_size: float64 [2] (width, length) m.
       map: VectorMap in the ego frame.
       city_from_ego: float64 [3, 3] SE(2) pose of the ego in the map's world frame.
+      size_measured: bool [A], whether each actor's box size was measured by the source;
+        None: every box was. An unmeasured size (a placeholder for drawing the actor) is
+        never learnt from nor scored.
     """
 
     scene_id: str
@@ -41,10 +44,18 @@ class Frame:
     ego_size: np.ndarray
     map: VectorMap
     city_from_ego: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(3))
+    size_measured: np.ndarray | None = None
 
     @property
     def num_actors(self) -> int:
         return int(self.cls.shape[0])
+
+    @property
+    def measured(self) -> np.ndarray:
+        """bool [A]: `size_measured`, all True when None."""
+        if self.size_measured is None:
+            return np.ones(self.num_actors, bool)
+        return np.asarray(self.size_measured, bool)
 
 
 # Beyond these a row is damaged, not a road user, in every source: boxes longer or wider
@@ -77,4 +88,7 @@ def drop_beyond_limits(frame: Frame) -> tuple[Frame, collections.Counter]:
     if keep.all():
         return frame, drops
     fields = ("cls", "position", "size", "heading", "velocity", "track_id")
-    return dataclasses.replace(frame, **{f: getattr(frame, f)[keep] for f in fields}), drops
+    kept = {f: getattr(frame, f)[keep] for f in fields}
+    if frame.size_measured is not None:
+        kept["size_measured"] = frame.measured[keep]
+    return dataclasses.replace(frame, **kept), drops

@@ -35,6 +35,9 @@ class Actors:
       heading: float32 [N], rad in [0, 2pi) (unused for pedestrians).
       velocity: float32 [N, 2], (vx, vy) over the ground, m/s.
       valid: bool [N], slot holds an actor.
+      size_measured: bool [N], the source measured the box size; None: every box was. An
+        unmeasured size is a placeholder to draw the actor with: the likelihood leaves its
+        box term out, so nothing learns it or is scored on it.
     """
 
     cls: jnp.ndarray
@@ -43,6 +46,7 @@ class Actors:
     heading: jnp.ndarray
     velocity: jnp.ndarray
     valid: jnp.ndarray
+    size_measured: jnp.ndarray | None = None
 
     @property
     def num_slots(self) -> int:

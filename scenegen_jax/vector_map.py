@@ -159,3 +159,9 @@ def rotation_matrix(theta: float) -> np.ndarray:
     """2x2 counter-clockwise rotation by theta rad."""
     c, s = np.cos(theta), np.sin(theta)
     return np.array([[c, -s], [s, c]])
+
+
+def se2_pose(x: float, y: float, theta: float) -> np.ndarray:
+    """[3, 3] homogeneous SE(2) pose: rotation by theta rad, then translation (x, y)."""
+    c, s = np.cos(theta), np.sin(theta)
+    return np.array([[c, -s, x], [s, c, y], [0.0, 0.0, 1.0]])

@@ -12,6 +12,8 @@ import pytest
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DATA_ROOT = os.path.normpath(os.path.join(REPO, "..", "shared", "data", "av2_sensor_mini"))
 WOMD_ROOT = os.path.normpath(os.path.join(REPO, "..", "shared", "data", "womd_mini"))
+FORECAST_ROOT = os.path.normpath(
+    os.path.join(REPO, "..", "shared", "data", "av2_forecasting_mini"))
 
 
 def pytest_configure(config):
@@ -78,6 +80,14 @@ def womd_root() -> str:
     if not os.path.isdir(WOMD_ROOT):
         pytest.fail(f"real data missing: {WOMD_ROOT} (../shared must sit beside the repo)")
     return WOMD_ROOT
+
+
+@pytest.fixture(scope="session")
+def forecast_root() -> str:
+    """The real Argoverse 2 motion-forecasting scenarios, read in place."""
+    if not os.path.isdir(FORECAST_ROOT):
+        pytest.fail(f"real data missing: {FORECAST_ROOT} (../shared must sit beside the repo)")
+    return FORECAST_ROOT
 
 
 @pytest.fixture(scope="session")

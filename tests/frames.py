@@ -23,6 +23,8 @@ def frame_differences(a: Frame, b: Frame, atol: float = 1e-4) -> list[str]:
         diffs.append("cls")
     if [str(t) for t in a.track_id] != [str(t) for t in b.track_id]:
         diffs.append("track_id")
+    if not np.array_equal(a.measured, b.measured):
+        diffs.append("size_measured")
     for name in ("position", "size", "velocity", "ego_velocity", "ego_size", "city_from_ego"):
         x, y = np.asarray(getattr(a, name), np.float64), np.asarray(getattr(b, name), np.float64)
         if x.shape != y.shape or not np.allclose(x, y, rtol=0, atol=atol):

@@ -1,8 +1,8 @@
 """Checkpoints that heal and verify (real scenes, small tiny config, in process): a damaged
 newest checkpoint is set aside and the rerun finishes at the uninterrupted run's parameters;
 changed array bytes are caught by the checksums, changed or missing files before orbax reads
-them; one metrics row per step after a resume;
-unfinished saves are removed."""
+anything of the step; a step without checksums is incomplete, not loaded; one metrics row
+per step after a resume; unfinished saves are removed."""
 
 from __future__ import annotations
 
@@ -16,7 +16,13 @@ import numpy as np
 import pytest
 from small import CFG
 
-from scenegen_jax.checkpoint import CHECKSUM_FILE, TMP_MARKER, Checkpointer, tree_checksums
+from scenegen_jax.checkpoint import (
+    CHECKSUM_FILE,
+    TMP_MARKER,
+    Checkpointer,
+    step_folders,
+    tree_checksums,
+)
 from scenegen_jax.train.loop import load_trained, train
 from scenegen_jax.train.step import init_state
 
@@ -64,6 +70,33 @@ def _flip_a_byte_of_the_largest_data_file(folder) -> str:
     return rel
 
 
+def orbax_reads(monkeypatch) -> list[int]:
+    """The steps orbax is asked to read from now on (a restore, a metadata read, or a
+    manager started on a folder, which reads every step's metadata), as a growing list."""
+    import orbax.checkpoint as ocp
+
+    opened = []
+
+    def step_of(path) -> int:  # of STEP/default (a restore, metadata) or STEP (a manager's)
+        return int(next(p for p in reversed(os.path.abspath(path).split(os.sep)) if p.isdigit()))
+
+    def wrap(cls, name, record):
+        original = getattr(cls, name)
+
+        def recorded(self, *args, **kwargs):
+            record(*args, **kwargs)
+            return original(self, *args, **kwargs)
+
+        monkeypatch.setattr(cls, name, recorded)
+
+    wrap(ocp.Checkpointer, "restore", lambda path, *a, **k: opened.append(step_of(path)))
+    wrap(ocp.StandardCheckpointHandler, "metadata", lambda path: opened.append(step_of(path)))
+    wrap(ocp.CheckpointManager, "restore", lambda step, *a, **k: opened.append(step))
+    wrap(ocp.CheckpointManager, "__init__",
+         lambda directory, *a, **k: opened.extend(step_folders(str(directory))))
+    return opened
+
+
 def _steps(workdir):
     return sorted(int(d) for d in os.listdir(os.path.join(workdir, "checkpoints")) if d.isdigit())
 
@@ -81,7 +114,8 @@ def test_damaged_newest_checkpoint_is_set_aside_and_the_rerun_finishes(
     assert (
         f"{n} of {n} scenes hold more than max_actors = {CFG.grid.max_actors} actors" in caplog.text
     )
-    assert "damaged checkpoint moved to" in caplog.text
+    assert f"checkpoint at step {STEPS} is unreadable or damaged" in caplog.text
+    assert "moved to" in caplog.text
     aside = os.listdir(os.path.join(workdir, "checkpoints.damaged"))
     assert len(aside) == 1 and aside[0].startswith(f"{STEPS}-")
     assert _steps(workdir) == [4, 8, 12]
@@ -197,8 +231,6 @@ def test_a_changed_or_missing_file_is_named_before_orbax_reads_it(
 ):
     import hashlib
 
-    import orbax.checkpoint as ocp
-
     workdir = _copy(eight_steps, tmp_path)
     folder = os.path.join(workdir, "checkpoints", "8")
     with open(os.path.join(folder, CHECKSUM_FILE)) as f:
@@ -214,17 +246,10 @@ def test_a_changed_or_missing_file_is_named_before_orbax_reads_it(
     for rel in files:
         with open(os.path.join(folder, rel), "rb") as f:
             assert sums["file:" + rel] == hashlib.sha256(f.read()).hexdigest(), rel
-    opened = []
-    restore = ocp.CheckpointManager.restore
-
-    def recorded(self, step, **kwargs):
-        opened.append(step)
-        return restore(self, step, **kwargs)
-
-    monkeypatch.setattr(ocp.CheckpointManager, "restore", recorded)
+    opened = orbax_reads(monkeypatch)
     changed = _flip_a_byte_of_the_largest_data_file(folder)
     assert int(load_trained(workdir)[1].step) == 4
-    assert opened == [4]  # orbax never opened step 8
+    assert set(opened) == {4}  # orbax never opened step 8
     assert "files missing or changed since the save" in caplog.text and changed in caplog.text
     # A deleted file is named the same way.
     caplog.clear()
@@ -233,7 +258,7 @@ def test_a_changed_or_missing_file_is_named_before_orbax_reads_it(
     os.remove(os.path.join(folder, "default", "_METADATA"))
     with pytest.raises(FileNotFoundError, match="no readable checkpoint"):
         load_trained(workdir)
-    assert os.path.join("default", "_METADATA") in caplog.text and opened == [4]
+    assert os.path.join("default", "_METADATA") in caplog.text and set(opened) == {4}
 
 
 def test_unfinished_saves_are_removed(tmp_path):
@@ -267,3 +292,49 @@ def test_load_params_reads_the_parameters_alone(eight_steps, tmp_path, caplog):
         json.dump({**sums, par: "0" * 64}, f)
     assert load_params(workdir)[2] == 4
     assert "arrays differ from their checksums" in caplog.text and par in caplog.text
+
+
+def test_a_step_without_checksums_is_incomplete_and_not_loaded(
+        tiny_train_cache, eight_steps, tmp_path, caplog, monkeypatch):
+    """A step that orbax committed but that has no checksums (the run was killed between the
+    two, or the file was removed) is not loaded unverified: readers fall back to the previous
+    step, saying so in one line, and a training run sets it aside and trains it again."""
+    workdir = _copy(eight_steps, tmp_path)
+    missing = os.path.join(workdir, "checkpoints", "8", CHECKSUM_FILE)
+    os.remove(missing)
+    opened = orbax_reads(monkeypatch)
+    assert int(load_trained(workdir)[1].step) == 4
+    assert 8 not in opened
+    lines = [r.getMessage() for r in caplog.records if "step 8" in r.getMessage()]
+    assert len(lines) == 1 and "checkpoint at step 8 is incomplete" in lines[0]
+    assert missing in lines[0] and "trying the previous one" in lines[0]
+    assert _steps(workdir) == [4, 8]  # a reader leaves the folder as it is
+    state = train(CFG, tiny_train_cache.path, workdir, 8, save_every=EVERY, keep=2,
+                  progress=False)
+    assert int(state.step) == 8 and _steps(workdir) == [4, 8]
+    assert os.path.isfile(missing)  # saved again, whole
+    assert [n.split("-")[0] for n in os.listdir(workdir + "/checkpoints.damaged")] == ["8"]
+    _assert_same(state.params, load_trained(eight_steps)[1].params)
+
+
+@pytest.mark.parametrize("heal", [False, True], ids=["reader", "training"])
+def test_orbax_reads_nothing_of_a_damaged_step(eight_steps, tmp_path, caplog, monkeypatch,
+                                               heal):
+    """The checksums are verified before orbax touches a step: not even its manager, which
+    parses every step's _CHECKPOINT_METADATA when it starts, sees a damaged one (orbax logged
+    its parse error, and its failed reads ended in "Event loop is closed" tracebacks)."""
+    workdir = _copy(eight_steps, tmp_path)
+    meta = os.path.join(workdir, "checkpoints", "8", "_CHECKPOINT_METADATA")
+    with open(meta, "r+b") as f:
+        f.truncate(os.path.getsize(meta) // 2)
+    opened = orbax_reads(monkeypatch)
+    caplog.set_level(logging.INFO)
+    ckpt = Checkpointer(os.path.join(workdir, "checkpoints"), every=EVERY, keep=2, heal=heal)
+    restored = ckpt.restore_latest(jax.eval_shape(lambda: init_state(CFG)))
+    ckpt.close()
+    assert int(restored.step) == 4 and 8 not in opened and 4 in opened
+    assert "files missing or changed since the save: ['_CHECKPOINT_METADATA']" in caplog.text
+    noise = [r.getMessage() for r in caplog.records
+             if r.name.startswith(("absl", "orbax")) and r.levelno >= logging.WARNING]
+    assert not noise, noise
+    assert _steps(workdir) == ([4] if heal else [4, 8])

@@ -188,7 +188,37 @@ def _the_same_cache_twice(tmp_path, cache, data_root):
     return argv, "listed twice"
 
 
+def _seed_beyond_32_bits(tmp_path, cache, data_root):
+    return ["train", "--data", cache, "--workdir", str(tmp_path / "w"), "--steps", "1", "--set",
+            "seed=99999999999999999999"], "seed: must be an integer below 4294967296"
+
+
+def _train_into_a_cache(tmp_path, cache, data_root):
+    c = _copy(cache, tmp_path)
+    return (["train", "--data", cache, "--workdir", c, "--steps", "1"],
+            f"--workdir {c}: holds meta.json, so it is a cache, not a training workdir")
+
+
+def _train_into_an_exported_model(tmp_path, cache, data_root):
+    from scenegen_jax.pretrained import resolve
+
+    model = str(tmp_path / "model")
+    shutil.copytree(resolve("cpu-av2-womd"), model)
+    return (["train", "--data", cache, "--workdir", model, "--steps", "1"],
+            "holds manifest.json, so it is an exported model, not a training workdir")
+
+
+def _score_out_name_too_long(tmp_path, cache, data_root):
+    out = str(tmp_path / ("x" * 300 + ".csv"))
+    return (["score", "--pretrained", "cpu-av2-womd", "--data", cache, "--out", out],
+            "the file name is 304 bytes")
+
+
 CASES = [
+    _seed_beyond_32_bits,
+    _train_into_a_cache,
+    _train_into_an_exported_model,
+    _score_out_name_too_long,
     _malformed_cap,
     _top_k_without_render,
     _step_of_a_pretrained_model,
@@ -258,6 +288,9 @@ SAMPLE = ["sample", "--workdir", "w", "--data", "c", "--num", "1", "--out", "o"]
         ([*SAMPLE, "--batch-size", "0"], "argument --batch-size: '0' must be an integer >= 1"),
         (["render", "--cache", "c", "--rotate", "inf"],
          "argument --rotate: 'inf' must be a finite number"),
+        (["score", "--pretrained", "", "--data", "c", "--out", "o"],
+         "argument --pretrained: '': an empty path"),
+        (["train", "--data", "c", "--workdir", ""], "argument --workdir: '': an empty path"),
     ],
 )
 def test_flag_values_are_checked_before_any_work(argv, message, capsys):
@@ -310,3 +343,67 @@ def test_jaxs_global_switches_in_the_environment_change_nothing(cache_dir, tmp_p
         assert run.returncode == 0, run.stderr
         scores[name] = out.read_text()
     assert scores["switched"] == scores["plain"] and scores["plain"].count("\n") > 2
+
+
+@pytest.fixture(scope="module")
+def tiny_workdir(tmp_path_factory) -> str:
+    """A workdir of the tiny config with one checkpoint (untrained parameters)."""
+    from scenegen_jax.checkpoint import Checkpointer
+    from scenegen_jax.train.loop import save_or_check_config
+    from scenegen_jax.train.step import init_state
+
+    workdir = str(tmp_path_factory.mktemp("cli_errors_workdir") / "wd")
+    save_or_check_config(workdir, get_config("tiny"))
+    ckpt = Checkpointer(os.path.join(workdir, "checkpoints"), every=1)
+    ckpt.save(init_state(get_config("tiny")), force=True)
+    ckpt.close()
+    return workdir
+
+
+def test_a_second_train_on_a_workdir_is_refused_naming_the_holder(cache_dir, tmp_path,
+                                                                   caplog):
+    """While a run holds a workdir, another `train` on it is one line naming the holder's pid
+    and host, and writes nothing there."""
+    import socket
+
+    from scenegen_jax.locks import exclusive
+    from scenegen_jax.workdir import LOCK_FILE
+
+    workdir = tmp_path / "w"
+    with exclusive(str(workdir / LOCK_FILE), "training into w"):
+        code, errors = _run(["train", "--data", cache_dir, "--workdir", str(workdir), "--steps",
+                             "1"], caplog)
+        assert sorted(os.listdir(workdir)) == [LOCK_FILE]
+    assert code == 2 and len(errors) == 1
+    assert (f"locked by pid {os.getpid()} on host {socket.gethostname()} (training into w, "
+            "since ") in errors[0].getMessage()
+    assert not errors[0].exc_info
+
+
+def test_export_refuses_a_folder_that_is_not_an_exported_model(tiny_workdir, tmp_path, caplog,
+                                                                capsys):
+    foreign = tmp_path / "p"
+    foreign.mkdir()
+    (foreign / "config.json").write_text('{"someone": "else\'s"}')
+    code, errors = _run(["export-model", "--workdir", tiny_workdir, "--out", str(foreign)],
+                        caplog)
+    assert code == 2 and len(errors) == 1
+    assert (f"--out {foreign}: holds config.json, so it is something else, not an exported "
+            "model") in errors[0].getMessage()
+    assert sorted(os.listdir(foreign)) == ["config.json"]
+    assert (foreign / "config.json").read_text() == '{"someone": "else\'s"}'
+    code, errors = _run(["export-model", "--workdir", tiny_workdir, "--out", tiny_workdir],
+                        caplog)
+    assert code == 2 and "so it is a training workdir" in errors[0].getMessage()
+    # A new folder, then the exported model it holds, are written.
+    model = str(tmp_path / "model")
+    for _ in range(2):
+        cli.main(["export-model", "--workdir", tiny_workdir, "--out", model])
+    assert sorted(os.listdir(model)) == ["config.json", "manifest.json", "params.msgpack"]
+
+
+def test_render_prints_the_file_it_wrote(cache_dir, tmp_path, capsys):
+    out = tmp_path / "o" / "x"
+    cli.main(["render", "--cache", cache_dir, "--out", str(out)])
+    printed = capsys.readouterr().out.strip().splitlines()[-1]
+    assert printed == f"{out}.png" and os.path.isfile(printed) and not out.exists()

@@ -130,6 +130,9 @@ def test_config_mismatch_names_the_fields(tmp_path):
 
     workdir = str(tmp_path / "wd")
     save_or_check_config(workdir, get_config("tiny"))
+    save_or_check_config(workdir, get_config("tiny", seed="3"))  # no checkpoint: not bound
+    save_or_check_config(workdir, get_config("tiny"))
+    os.makedirs(os.path.join(workdir, "checkpoints", "1"))  # a saved step binds the config
     with pytest.raises(ValueError, match=r"learning_rate: 0.001 != 0.002.*seed: 0 != 3"):
         save_or_check_config(workdir, get_config("tiny", learning_rate="2e-3", seed="3"))
     save_or_check_config(workdir, get_config("tiny", remat="auto"))  # memory, not values

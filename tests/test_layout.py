@@ -14,7 +14,7 @@ PACKAGE = os.path.join(REPO, "scenegen_jax")
 # lower layers. So the training code (`train`) is imported by the CLI alone: a scene's
 # likelihood, sampling and evaluation only need parameters.
 LAYERS = (
-    ("jsonfile", "files", "config_fields"),
+    ("jsonfile", "files", "config_fields", "locks", "signals"),
     ("config", "allocator", "backend", "recipes"),
     ("scene", "vector_map"),
     ("frame", "geometry"),

@@ -192,6 +192,7 @@ def test_resume_with_other_caches_or_weights_is_refused(caches, tmp_path):
     assert [c["path"] for c in record["caches"]] == [os.path.abspath(a), os.path.abspath(b)]
     assert [c["source"] for c in record["caches"]] == ["av2", "womd_json"]
     assert record["weights"] == [3.0, 1.0] and record["shares"] == [0.75, 0.25]
+    os.makedirs(os.path.join(workdir, "checkpoints", "1"))  # a saved step binds the record
     save_or_check_data(workdir, load_union([a, b], CFG), [6.0, 2.0])  # the same shares
     with pytest.raises(ValueError, match="data.json: this workdir was trained on --data"):
         train(CFG, [b, a], workdir, 1, weights=[1.0, 3.0], progress=False)

@@ -46,6 +46,8 @@ def test_converter_output_imports(name):
             dh = np.angle(np.exp(1j * (frame.heading[i] - want.heading)))
             assert abs(dh) < 1e-4, tid
     np.testing.assert_allclose(frame.ego_size, f.ego_size, atol=1e-5)
+    # Only ScenarioNet's Argoverse 2 converter writes one box for every vehicle.
+    assert np.all(frame.measured == (not name.startswith("argoverse2")))
     np.testing.assert_allclose(frame.ego_velocity, f.ego_velocity, atol=2e-3)
     np.testing.assert_allclose(frame.city_from_ego[:2, 2], f.ego_xy, atol=2e-3)
 

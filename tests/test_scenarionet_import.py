@@ -34,7 +34,7 @@ def test_standard_scenario_imports_in_ego_frame():
     np.testing.assert_allclose(frame.heading[2], np.mod(4.0 - np.pi / 2, 2 * np.pi), atol=1e-6)
     np.testing.assert_allclose(frame.velocity[1], [0.0, -1.0], atol=1e-6)  # world +x is ego right
     np.testing.assert_allclose(frame.ego_velocity, [10.0, 0.0], atol=1e-5)
-    np.testing.assert_allclose(frame.size[0], [2.0, 4.5])
+    np.testing.assert_allclose(frame.size[0], [2.0, 4.6])
     np.testing.assert_allclose(frame.ego_size, [2.0, 4.5])
     np.testing.assert_allclose(frame.city_from_ego[:2, 2], [101.0, 50.0])
     # pose maps ego-frame points back to the world

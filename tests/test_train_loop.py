@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -194,12 +195,14 @@ def test_killed_run_resumes_exactly(tiny_train_cache, tmp_path):
 
 def test_logged_metrics_are_means_over_the_logged_steps():
     """`summarize` on hand-made sums of two steps: loss and gradient norm per batch, NLL per
-    scene, per actor of each class and per vehicle; None for a class with no actor."""
+    scene, per actor of each class and per vehicle (the box term per vehicle with a measured
+    box); None for a class with no actor."""
     from scenegen_jax.train.loop import summarize
 
     stats = {"batches": 2, "scenes": 8, "loss": 30.0, "grad_norm": 5.0, "nll_sum_stop": 4.0,
              **{f"nll_{k}": 16.0 for k in ("class", "location", "box", "heading", "velocity")},
-             "count_vehicle": 10, "nll_sum_vehicle": 25.0, "count_pedestrian": 4,
+             "count_vehicle": 10, "count_box_vehicle": 6, "nll_sum_vehicle": 25.0,
+             "count_pedestrian": 4,
              "nll_sum_pedestrian": 2.0, "count_bicyclist": 0, "nll_sum_bicyclist": 0.0,
              **{f"nll_{k}_sum_vehicle": 3.0 for k in ("location", "box", "heading", "velocity")}}
     row = summarize(stats)
@@ -208,3 +211,84 @@ def test_logged_metrics_are_means_over_the_logged_steps():
     assert row["nll_per_vehicle"] == 2.5 and row["nll_per_pedestrian"] == 0.5
     assert row["nll_per_bicyclist"] is None
     assert row["heading_per_vehicle"] == pytest.approx(0.3)
+    assert row["box_per_vehicle"] == pytest.approx(0.5)  # over the 6 measured boxes
+
+
+def _rows_without_timing(path: str) -> list[dict]:
+    return [{k: v for k, v in json.loads(row).items() if k != "steps_per_s"}
+            for row in metrics_rows(path)]
+
+
+def test_a_resumed_run_logs_the_rows_of_the_uninterrupted_one(tiny_train_cache, tmp_path):
+    """Checkpoints every 3 steps, a row every 2: the run stopped after step 4 resumes from
+    step 3, and its row of step 4 averages steps 3 and 4 as the uninterrupted run's did (the
+    checkpoint keeps the sums of the steps since the last row), not step 4 alone."""
+    import shutil
+
+    from scenegen_jax.train.loop import train
+
+    full = str(tmp_path / "full")
+    train(CFG, tiny_train_cache.path, full, 6, save_every=3, log_every=2, progress=False)
+    stopped = str(tmp_path / "stopped")
+    shutil.copytree(full, stopped)
+    shutil.rmtree(os.path.join(stopped, "checkpoints", "6"))  # as a kill before step 6's save
+    train(CFG, tiny_train_cache.path, stopped, 6, save_every=3, log_every=2, progress=False)
+    want = _rows_without_timing(os.path.join(full, "metrics.jsonl"))
+    assert [r["step"] for r in want] == [2, 4, 6]
+    assert _rows_without_timing(os.path.join(stopped, "metrics.jsonl")) == want
+
+
+def test_a_run_that_fails_before_its_first_checkpoint_leaves_the_workdir_as_found(
+        tiny_train_cache, tmp_path):
+    """A run that fails before its first checkpoint removes what it wrote (config.json,
+    data.json, checkpoints/, the folders it made), and config and data files without a
+    checkpoint (a run killed before its first) bind nothing: the corrected rerun trains."""
+    from scenegen_jax.train.loop import save_or_check_config, train
+
+    cache = tiny_train_cache.path
+    broken = CFG.replace(train_params=("nonexistent",))  # refused when the step is built
+    new = tmp_path / "new" / "run"
+    with pytest.raises(ValueError, match="train_params: no parameter"):
+        train(broken, cache, str(new), 2, progress=False)
+    assert not (tmp_path / "new").exists()
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("the user's")
+    with pytest.raises(ValueError, match="train_params: no parameter"):
+        train(broken, cache, str(mine), 2, progress=False)
+    assert sorted(os.listdir(mine)) == ["notes.txt"]
+    # What a run killed before its first checkpoint leaves: another config and other data.
+    save_or_check_config(str(mine), CFG.replace(seed=5))
+    other = {"caches": [{"path": str(tmp_path / "other"), "source": "av2", "scenes": 3}],
+             "weights": None, "shares": [1.0]}
+    (mine / "data.json").write_text(json.dumps(other))
+    state = train(CFG, cache, str(mine), 1, progress=False)
+    assert int(state.step) == 1
+    with open(mine / "config.json") as f:
+        assert json.load(f)["train"]["seed"] == CFG.train.seed
+
+
+def test_a_diverged_run_is_one_line_naming_the_step_and_the_learning_rate(
+        tiny_train_cache, tmp_path, caplog):
+    import logging
+
+    args = [*train_args(tiny_train_cache.path, str(tmp_path / "w"), 4, "--log-every", "1"),
+            "learning_rate=1e9"]  # one more --set
+    with caplog.at_level(logging.ERROR, logger="scenegen"), pytest.raises(SystemExit) as e:
+        cli.main(args)
+    errors = [r for r in caplog.records if r.name == "scenegen"]
+    assert e.value.code == 2 and len(errors) == 1, [r.getMessage() for r in errors]
+    message = errors[0].getMessage()
+    assert re.search(r"training diverged: the loss is nan at step \d+; lower --set "
+                     r"learning_rate \(now 1e\+09\)", message), message
+    assert "\n" not in message and not errors[0].exc_info
+
+
+def test_the_loss_check_names_the_steps_of_the_row():
+    from scenegen_jax.train.loop import NonFiniteLoss, check_finite_loss
+
+    check_finite_loss(3.0, 0, 10, CFG)
+    with pytest.raises(NonFiniteLoss, match=r"the loss is inf at steps 11-20; lower"):
+        check_finite_loss(float("inf"), 10, 20, CFG)
+    with pytest.raises(ValueError, match=r"the loss is nan at step 2; lower"):  # the CLI's
+        check_finite_loss(float("nan"), 1, 2, CFG)

@@ -11,6 +11,7 @@ import pytest
 
 from scenegen_jax.config import get_config
 from scenegen_jax.data import womd_json as W
+from scenegen_jax.data import womd_scene as S
 from scenegen_jax.data.prepare import prepare
 from scenegen_jax.data.sources import source_spec
 from scenegen_jax.data.surface import DEFAULT_HALF_WIDTH_M, Centerline, outline_lanes
@@ -278,7 +279,7 @@ def _direct_counts(path: str, stride: int) -> collections.Counter:
     with open(path) as f:
         data = json.load(f)
     objects = data["objects"]
-    assert all(o["type"] in W.CLASS_FROM_TYPE for o in objects)  # object index = track index
+    assert all(o["type"] in S.CLASS_FROM_TYPE for o in objects)  # object index = track index
     marker = (data.get("metadata") or {}).get("sdc_track_index")
     sdc = marker if marker is not None else W.estimate_sdc(W.read_tracks(objects, path)[0])
     out = collections.Counter()
@@ -287,7 +288,7 @@ def _direct_counts(path: str, stride: int) -> collections.Counter:
             continue
         for o, obj in enumerate(objects):
             sized = obj["type"] == "pedestrian" or (obj["width"] > 0 and obj["length"] > 0)
-            out[W.CLASS_FROM_TYPE[obj["type"]]] += int(obj["valid"][t] and o != sdc and sized)
+            out[S.CLASS_FROM_TYPE[obj["type"]]] += int(obj["valid"][t] and o != sdc and sized)
     return out
 
 
@@ -351,7 +352,7 @@ WAYMO_LINE_MARKS = {
 }
 
 
-def _file_lines(path: str, center: np.ndarray, radius: float = W.MAP_RADIUS_M):
+def _file_lines(path: str, center: np.ndarray, radius: float = S.MAP_RADIUS_M):
     """The road edges and road lines of a file as a map around `center` (world, m) must hold
     them, read from the JSON itself: world polylines without repeated points (fewer than two
     left: none), whose bounding box meets the square of half-side `radius` m around

@@ -7,6 +7,7 @@ import logging
 import os
 import sys
 
+from scenegen_jax import signals
 from scenegen_jax.allocator import reexec_with_tcmalloc
 
 
@@ -93,14 +94,15 @@ def main(argv: list[str] | None = None) -> None:
     )
     for noisy in ("jax", "absl", "matplotlib", "orbax"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
+    signals.install()
     try:
         start_jax(args.func in computes and not getattr(args, "distributed", False))
         if args.func in compiles:
             enable_compile_cache()
         args.func(args)
-    except KeyboardInterrupt:
-        logging.getLogger("scenegen").error("interrupted")
-        raise SystemExit(130) from None
+    except KeyboardInterrupt as e:  # `signals.Stopped` by Ctrl-C or SIGTERM
+        logging.getLogger("scenegen").error("interrupted (%s)", e or "SIGINT")
+        raise SystemExit(getattr(e, "exit_status", 130)) from None
     except (OSError, ValueError, IndexError) as e:
         # Bad input (a file, a field, a flag): one line naming it, exit 2; -v adds the
         # traceback. Every reader raises these with the file and the field in the message.

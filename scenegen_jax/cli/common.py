@@ -37,6 +37,24 @@ def check_output(flag: str, path: str, folder: bool = False) -> None:
         raise ValueError(f"{flag} {path}: cannot make the folder {where} ({e.strerror})") from e
     if not os.access(where, os.W_OK):
         raise ValueError(f"{flag} {path}: the folder {where} is not writable")
+    if not folder:
+        check_name_length(flag, path, where)
+
+
+def check_name_length(flag: str, path: str, where: str) -> None:
+    """Fails where the file name of `path` is longer than the folder `where` allows
+    (NAME_MAX, 255 bytes on most file systems), counting the temporary name
+    `files.written_whole` writes first (".<pid>.tmp" added)."""
+    try:
+        limit = os.pathconf(where, "PC_NAME_MAX")
+    except (OSError, ValueError):  # a file system that does not say: the write decides
+        return
+    name = len(os.path.basename(path).encode())
+    extra = len(f".{os.getpid()}.tmp")
+    if name + extra > limit:
+        raise ValueError(f"{flag} {path[:60]}...: the file name is {name} bytes; the folder "
+                         f"{where} allows {limit - extra} (its file system's {limit}, less "
+                         f"{extra} for the temporary name written first)")
 
 
 def load_model(args):
@@ -46,7 +64,7 @@ def load_model(args):
     import jax
 
     sampler = {}
-    if args.pretrained:
+    if args.pretrained is not None:
         if args.step is not None:
             raise ValueError("--step selects a checkpoint of --workdir; a pretrained model has one")
         from scenegen_jax.pretrained import load_pretrained
@@ -72,13 +90,21 @@ def location_temperature(args, sampler: dict) -> float:
 def add_model_args(sp) -> None:
     """`--workdir DIR [--step N]` or `--pretrained NAME`: the model a command uses."""
     which = sp.add_mutually_exclusive_group(required=True)
-    which.add_argument("--workdir", help="training workdir (config + checkpoints)")
+    which.add_argument("--workdir", type=path_arg,
+                       help="training workdir (config + checkpoints)")
     which.add_argument(
-        "--pretrained", metavar="NAME",
+        "--pretrained", metavar="NAME", type=path_arg,
         help="a model shipped with the package (`scenegen models` lists them) or a directory "
         "written by `scenegen export-model`",
     )
     sp.add_argument("--step", type=int, help="checkpoint step of --workdir (default: the latest)")
+
+
+def path_arg(text: str) -> str:
+    """argparse type: a file or folder path (or a model name), not empty."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError(f"{text!r}: an empty path; give a file or folder")
+    return text
 
 
 def finite_float(text: str) -> float:

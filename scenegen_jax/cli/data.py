@@ -42,6 +42,12 @@ def parse_shard(text: str) -> tuple[int, int]:
     return int(index), int(count)
 
 
+def _image_path(path: str) -> str:
+    """The file `render_scene` writes for `path`: a name without an extension gets `.png`
+    (`viz.render.save_figure`), and the command prints the file it wrote."""
+    return path if os.path.splitext(path)[1] else path + ".png"
+
+
 def _numbered(path: str, n: int, index: int) -> str:
     root, ext = os.path.splitext(path)
     return f"{root}_{index:05d}{ext or '.png'}"
@@ -64,7 +70,7 @@ def cmd_render(args) -> None:
         canvas, actors, ego = cached_scene(cache, index, cfg)
         theta = np.deg2rad(args.rotate)
         map_raster, scene, _ = scene_from_cached(canvas, actors, ego, theta, cfg.grid)
-        out = args.out if len(indices) == 1 else _numbered(args.out, n, index)
+        out = _image_path(args.out) if len(indices) == 1 else _numbered(args.out, n, index)
         render_scene(
             out,
             np.asarray(map_raster),
@@ -81,11 +87,13 @@ def add_parsers(sub) -> None:
     """Registers this module's subcommands."""
     sp = sub.add_parser("prepare", help="read logs into a preprocessed cache")
     sp.add_argument("--source", choices=SOURCES, default="av2",
-                    help="av2: Argoverse 2 logs; scenarionet: ScenarioNet pickles; womd_json: "
-                    "Waymo scenes as GPUDrive / Nocturne JSON")
-    sp.add_argument("--root", required=True, help="dataset root (av2: holds train/ and val/)")
-    sp.add_argument("--split", help="sub-folder of --root (av2: default train; others: all "
-                    "files under --root when not given)")
+                    help="av2: Argoverse 2 sensor logs; av2_forecasting: Argoverse 2 motion-"
+                    "forecasting scenarios; womd: Waymo Scenario TFRecords; scenarionet: "
+                    "ScenarioNet pickles; womd_json: Waymo scenes as GPUDrive / Nocturne JSON")
+    sp.add_argument("--root", required=True,
+                    help="dataset root (av2, av2_forecasting: holds train/ and val/)")
+    sp.add_argument("--split", help="sub-folder of --root (av2, av2_forecasting: default "
+                    "train; others: all files under --root when not given)")
     sp.add_argument("--out", required=True, help="cache directory to write")
     sp.add_argument("--config", default="tiny", choices=sorted(PRESETS))
     sp.add_argument("--stride", type=int, default=DEFAULT_STRIDE,

@@ -9,6 +9,7 @@ from scenegen_jax.cli.common import (
     add_distributed_args,
     nonnegative_int,
     overrides,
+    path_arg,
     positive_float,
     positive_int,
     start_distributed,
@@ -52,8 +53,9 @@ def cmd_reproduce(args) -> None:
 
 def cmd_export_model(args) -> None:
     from scenegen_jax.pretrained import save_pretrained
-    from scenegen_jax.workdir import load_params
+    from scenegen_jax.workdir import check_model_target, load_params
 
+    check_model_target("--out", args.out)
     cfg, params, step = load_params(args.workdir, args.step)
     sampler = ({} if args.location_temperature is None
                else {"location_temperature": args.location_temperature})
@@ -82,8 +84,9 @@ def add_parsers(sub) -> None:
     sp.add_argument("--weights", type=float, nargs="+", metavar="W",
                     help="one per --data cache: a scene comes from cache i with probability "
                     "W_i / sum(W) (default: the scene counts, uniform over all scenes)")
-    sp.add_argument("--workdir", required=True,
-                    help="checkpoints, config.json, data.json, metrics.jsonl")
+    sp.add_argument("--workdir", required=True, type=path_arg,
+                    help="checkpoints, config.json, data.json, metrics.jsonl (a new folder or "
+                    "one of `train`'s; one run at a time: a second is refused)")
     sp.add_argument("--steps", type=nonnegative_int, default=1000,
                     help="total steps (resumes if fewer done)")
     sp.add_argument("--save-every", type=positive_int, default=100)
@@ -94,6 +97,7 @@ def add_parsers(sub) -> None:
     sp.add_argument(
         "--init-from",
         metavar="WORKDIR|MODEL",
+        type=path_arg,
         help="a fresh run starts from the trained parameters of this workdir or pretrained "
         "model (name or directory; fresh optimizer): fine-tuning; a model without map layers "
         "can be extended with them",
@@ -105,7 +109,7 @@ def add_parsers(sub) -> None:
     sp = sub.add_parser("reproduce", help="train a shipped model's recipe from scratch, "
                         "resuming where it stopped")
     sp.add_argument("recipe", help="recipe name (`scenegen_jax/recipes.py`), e.g. cpu-av2-womd")
-    sp.add_argument("--workdir", required=True,
+    sp.add_argument("--workdir", required=True, type=path_arg,
                     help="one workdir per run and phase: WORKDIR/RUN/PHASE")
     sp.add_argument("--cache-dir", default="runs", help="where the recipe's caches are "
                     "prepared when missing (default: runs)")
@@ -113,13 +117,16 @@ def add_parsers(sub) -> None:
                     help="the folder holding the recipe's data sets (default: ../shared/data)")
     sp.add_argument("--run", nargs="+", metavar="RUN",
                     help="train only these runs of the recipe (default: all, in order)")
-    sp.add_argument("--out", help="export the recipe's model here when its run is done")
+    sp.add_argument("--out", type=path_arg, help="export the recipe's model here when its run "
+                    "is done (a new or empty folder, or an exported model to replace)")
     sp.set_defaults(func=cmd_reproduce)
 
     sp = sub.add_parser("export-model", help="write a workdir's parameters as a pretrained model")
-    sp.add_argument("--workdir", required=True)
+    sp.add_argument("--workdir", required=True, type=path_arg)
     sp.add_argument("--step", type=int, help="checkpoint step (default: the latest)")
-    sp.add_argument("--out", required=True, help="directory (config, parameters, manifest)")
+    sp.add_argument("--out", required=True, type=path_arg,
+                    help="directory (config, parameters, manifest): a new or empty folder, or "
+                    "an exported model to replace")
     sp.add_argument("--location-temperature", type=positive_float, metavar="T",
                     help="the location temperature `sample` and `evaluate` use with this model "
                     "unless told otherwise (recorded in the manifest; default: none, i.e. 1)")

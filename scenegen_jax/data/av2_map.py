@@ -1,5 +1,5 @@
-"""Argoverse 2 vector maps: a log's `log_map_archive_*.json` read into a `VectorMap` in the
-city frame, with degenerate elements dropped and counted."""
+"""Argoverse 2 vector maps: a sensor log's or a forecasting scenario's `log_map_archive_*.json`
+read into a `VectorMap` in the city frame, with degenerate elements dropped and counted."""
 
 from __future__ import annotations
 
@@ -25,7 +25,12 @@ def read_map(log_dir: str) -> tuple[VectorMap, collections.Counter]:
         raise FileNotFoundError(
             f"{os.path.join(log_dir, 'map')}: no log_map_archive_*.json map file"
         )
-    path = paths[0]
+    return read_map_file(paths[0])
+
+
+def read_map_file(path: str) -> tuple[VectorMap, collections.Counter]:
+    """The vector map of one `log_map_archive_*.json` file (a sensor log's or a forecasting
+    scenario's: one schema) in the city frame, and counts of degenerate elements dropped."""
     try:
         data = read_json(path)
     except OSError as e:

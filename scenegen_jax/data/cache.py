@@ -19,7 +19,7 @@ import numpy as np
 from scenegen_jax.config import Config
 from scenegen_jax.data.cache_layout import (
     ACTOR_FIELDS,
-    CACHE_VERSION,
+    READABLE_VERSIONS,
     SHARD_RE,
     canvas_radius,
 )
@@ -32,7 +32,7 @@ from scenegen_jax.scene import Actors, in_region, make_ego
 ARRAY_LAYOUT = {
     "cls": ("iu", ("A",)), "valid": ("b", ("A",)), "position": ("f", ("A", 2)),
     "size": ("f", ("A", 2)), "heading": ("f", ("A",)), "velocity": ("f", ("A", 2)),
-    "ego_velocity": ("f", (2,)), "ego_size": ("f", (2,)),
+    "size_measured": ("b", ("A",)), "ego_velocity": ("f", (2,)), "ego_size": ("f", (2,)),
 }
 _KIND_NAMES = {"iu": "integer", "b": "bool", "f": "float"}
 
@@ -126,10 +126,11 @@ def load_cache(path: str) -> Cache:
     meta = read_json(meta_path)
     if not isinstance(meta, dict) or not isinstance(meta.get("scene_ids"), list):
         raise ValueError(f"{meta_path}: field scene_ids: missing or not a list")
-    if meta.get("version") != CACHE_VERSION:
+    if meta.get("version") not in READABLE_VERSIONS:
         raise ValueError(
-            f"{meta_path}: field version: {meta.get('version')} != {CACHE_VERSION}"
-            " (a cache of another version of scenegen: re-run scenegen prepare)"
+            f"{meta_path}: field version: {meta.get('version')}, this scenegen reads "
+            f"{list(READABLE_VERSIONS)} (a cache of another version of scenegen: re-run "
+            "scenegen prepare)"
         )
     if meta.get("channels") != list(ALL_MAP_CHANNELS):
         raise ValueError(
@@ -147,6 +148,8 @@ def load_cache(path: str) -> Cache:
             data = {k: z[k] for k in z.files}
     except _UNREADABLE_ARRAY as e:
         raise ValueError(f"{npz_path}: unreadable actor arrays ({e}); re-run prepare") from e
+    if meta["version"] < 4 and "size_measured" not in data:
+        data["size_measured"] = np.ones_like(data.get("valid", np.zeros((0, 0), bool)), bool)
     missing = [k for k in (*ACTOR_FIELDS, "ego_velocity", "ego_size") if k not in data]
     if missing:
         raise ValueError(f"{npz_path}: missing field(s) {missing}")

@@ -3,9 +3,11 @@ reads fast.
 
 Layout of a cache directory:
   meta.json     config (grid, resolution), channel names, scene ids, the prepare summary
+  .lock         only while `prepare` writes the cache: the writer's pid and host
   maps.npy      float16 [S, C, C, len(ALL_MAP_CHANNELS)] map canvases (C = canvas_size)
-  actors.npz    padded actors [S, A] (cls, position, size, heading, velocity, valid), the
-                ego (velocity, size) per scene, and the ego's city pose [S, 3, 3]
+  actors.npz    padded actors [S, A] (cls, position, size, heading, velocity, valid,
+                size_measured), the ego (velocity, size) per scene, and the ego's city
+                pose [S, 3, 3]
 
 A sharded cache (`prepare --shard I/N`, one job per shard, e.g. on N machines) is a directory
 of N such caches, `shard-0000I-of-0000N/`; `cache.load_cache` reads it as one cache, the
@@ -24,8 +26,13 @@ import re
 
 from scenegen_jax.config import Config
 
-CACHE_VERSION = 3  # 2: the nearest lane channels; 3: the data set channels
-ACTOR_FIELDS = ("cls", "position", "size", "heading", "velocity", "valid")
+# 2: the nearest lane channels; 3: the data set channels; 4: whether each box was measured.
+CACHE_VERSION = 4
+# Versions this one reads: a version 3 cache predates `size_measured`, and every source it
+# could be written from measured its boxes except ScenarioNet's Argoverse 2 converter, whose
+# constant boxes only a re-run of prepare marks.
+READABLE_VERSIONS = (3, 4)
+ACTOR_FIELDS = ("cls", "position", "size", "heading", "velocity", "valid", "size_measured")
 
 
 def cache_slots(cfg: Config) -> int:

@@ -13,6 +13,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
+from scenegen_jax import locks
 from scenegen_jax.config import Config
 from scenegen_jax.data.cache_layout import (
     ACTOR_FIELDS,
@@ -36,13 +37,16 @@ class Summary:
     of modelled classes outside it (kept in the cache only as far as rotations can reach), so
     actors + outside_region is every row of a modelled class that was read. `bad_files`
     counts files that could not be read, by reason (their names are in the log and in
-    `bad_file_list`).
+    `bad_file_list`). `size_unmeasured` counts, per class, the in-region actors whose box
+    size the source did not measure (`Frame.size_measured`): their box term is never
+    learnt or scored.
     """
 
     scenes: int = 0
     actors: dict = dataclasses.field(default_factory=lambda: {c: 0 for c in CLASS_NAMES})
     dropped: dict = dataclasses.field(default_factory=dict)
     outside_region: dict = dataclasses.field(default_factory=lambda: {c: 0 for c in CLASS_NAMES})
+    size_unmeasured: dict = dataclasses.field(default_factory=lambda: {c: 0 for c in CLASS_NAMES})
     overflow: int = 0
     empty_scenes: int = 0
     files: int = 0
@@ -65,6 +69,7 @@ class EncodedFrame:
     city_from_ego: np.ndarray  # [3, 3]
     inside: dict  # in-region actors per class name
     outside: dict  # disc actors outside the region per class name
+    unmeasured: dict  # in-region actors without a measured box size per class name
     overflow: int
 
 
@@ -80,6 +85,8 @@ def encode_frame(frame: Frame, cfg: Config) -> EncodedFrame:
         city_from_ego=np.asarray(frame.city_from_ego, np.float64),
         inside={n: int(np.sum(inside & (frame.cls == c))) for c, n in enumerate(CLASS_NAMES)},
         outside={n: int(np.sum(~inside & (frame.cls == c))) for c, n in enumerate(CLASS_NAMES)},
+        unmeasured={n: int(np.sum(inside & ~frame.measured & (frame.cls == c)))
+                    for c, n in enumerate(CLASS_NAMES)},
         overflow=overflow,
     )
 
@@ -96,7 +103,8 @@ class _NpyAppender:
     def __init__(self, path: str, item_shape: tuple[int, ...], dtype) -> None:
         self.path, self.item_shape, self.dtype = path, item_shape, np.dtype(dtype)
         self.count = 0
-        self.file = open(path + ".tmp", "wb")  # noqa: SIM115 (closed in close())
+        self.tmp = f"{path}.{os.getpid()}.tmp"  # this process's own, whoever else writes
+        self.file = open(self.tmp, "wb")  # noqa: SIM115 (closed in close())
         self.file.write(self._header(0))
 
     def _header(self, count: int) -> bytes:
@@ -114,40 +122,52 @@ class _NpyAppender:
         self.file.seek(0)
         self.file.write(self._header(self.count))
         self.file.close()
-        os.replace(self.path + ".tmp", self.path)
+        os.replace(self.tmp, self.path)
 
     def discard(self) -> None:
         """Closes and removes the unfinished file (any earlier `path` stays as it was)."""
         self.file.close()
-        if os.path.exists(self.path + ".tmp"):
-            os.remove(self.path + ".tmp")
+        if os.path.exists(self.tmp):
+            os.remove(self.tmp)
 
 
 class CacheWriter:
     """Appends encoded frames to a cache directory; `close` writes the arrays and meta.json.
 
-    Used as a context manager: when the block raises (a bad file under `--strict`, no scenes,
-    an interrupt), the unfinished maps file is removed and a cache already in the directory
-    is left whole.
+    Used as a context manager, which holds the directory's lock (`locks.exclusive` on
+    OUT/.lock: a second writer is refused, naming this one's pid and host): when the block
+    raises (a bad file under `--strict`, no scenes, an interrupt) or ends without `close`,
+    the unfinished maps file is removed and a cache already in the directory is left whole.
     """
 
     def __init__(self, out_dir: str, cfg: Config, source: dict | None = None) -> None:
         os.makedirs(out_dir, exist_ok=True)
         self.out_dir, self.cfg, self.source = out_dir, cfg, source or {}
+        self._lock = locks.acquire(self._lock_path, f"writing the cache {out_dir}")
         self.summary = Summary()
         size = cfg.grid.canvas_size
-        self.maps = _NpyAppender(
-            os.path.join(out_dir, "maps.npy"), (size, size, len(ALL_MAP_CHANNELS)), np.float16
-        )
+        try:
+            self.maps = _NpyAppender(
+                os.path.join(out_dir, "maps.npy"), (size, size, len(ALL_MAP_CHANNELS)),
+                np.float16)
+        except BaseException:
+            locks.release(self._lock_path, self._lock)
+            raise
         self.arrays: dict = collections.defaultdict(list)
         self.ids: list[str] = []
+
+    @property
+    def _lock_path(self) -> str:
+        return os.path.join(self.out_dir, locks.LOCK_FILE)
 
     def __enter__(self) -> CacheWriter:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
-        if exc_type is not None:
-            self.maps.discard()
+        try:
+            self.maps.discard()  # a no-op after `close`; else the unfinished file goes
+        finally:
+            locks.release(self._lock_path, self._lock)
 
     def add(self, enc: EncodedFrame) -> None:
         self.maps.append(enc.map)
@@ -161,6 +181,7 @@ class CacheWriter:
         for name in CLASS_NAMES:
             s.actors[name] += enc.inside[name]
             s.outside_region[name] += enc.outside[name]
+            s.size_unmeasured[name] += enc.unmeasured[name]
         s.overflow += enc.overflow
         s.empty_scenes += int(not any(enc.inside.values()))
 
@@ -240,6 +261,7 @@ def pad_frame_actors(frame: Frame, cfg: Config, slots: int) -> tuple[dict, np.nd
         "heading": np.zeros(slots, np.float32),
         "velocity": np.zeros((slots, 2), np.float32),
         "valid": np.zeros(slots, bool),
+        "size_measured": np.zeros(slots, bool),
     }
     out["cls"][:n] = frame.cls[near]
     out["position"][:n] = pos[near]
@@ -247,5 +269,6 @@ def pad_frame_actors(frame: Frame, cfg: Config, slots: int) -> tuple[dict, np.nd
     out["heading"][:n] = frame.heading[near]
     out["velocity"][:n] = frame.velocity[near]
     out["valid"][:n] = True
+    out["size_measured"][:n] = frame.measured[near]
     return out, inside, overflow
 

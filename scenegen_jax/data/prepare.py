@@ -16,6 +16,7 @@ import pickle
 import time
 from typing import NamedTuple
 
+from scenegen_jax import signals
 from scenegen_jax.backend import contiguous_part, cpu_cores
 from scenegen_jax.config import Config
 from scenegen_jax.data.cache_layout import shard_dir
@@ -121,16 +122,23 @@ def _encode_into(writer: CacheWriter, spec: dict, files: list[str], cfg: Config,
             consume(encode_file(spec, path, cfg, strict))
     else:
         # Spawned, not forked: the parent may already run JAX's threads. At most
-        # 2 * workers files in flight, so finished maps never pile up in memory.
+        # 2 * workers files in flight, so finished maps never pile up in memory. Workers
+        # leave stop signals to this process: when it stops, files not started are
+        # cancelled, and each worker ends after the file it is reading.
         context = multiprocessing.get_context("spawn")
         n = min(workers, len(files))
-        with concurrent.futures.ProcessPoolExecutor(n, mp_context=context) as pool:
+        with concurrent.futures.ProcessPoolExecutor(
+                n, mp_context=context, initializer=signals.ignore_in_worker) as pool:
             pending = collections.deque()
-            for path in files:
-                pending.append(pool.submit(encode_file, spec, path, cfg, strict))
-                if len(pending) >= 2 * n:
-                    consume(pending.popleft().result())  # file order
-            while pending:
-                consume(pending.popleft().result())
+            try:
+                for path in files:
+                    pending.append(pool.submit(encode_file, spec, path, cfg, strict))
+                    if len(pending) >= 2 * n:
+                        consume(pending.popleft().result())  # file order
+                while pending:
+                    consume(pending.popleft().result())
+            except BaseException:
+                pool.shutdown(wait=False, cancel_futures=True)
+                raise
     writer.summary.bad_files = dict(sorted(bad.items()))
     return drops

@@ -102,7 +102,7 @@ from scenegen_jax.data.scenarionet_tracks import (
 from scenegen_jax.files import files_under
 from scenegen_jax.frame import Frame, drop_beyond_limits
 from scenegen_jax.scene import PEDESTRIAN, VEHICLE, wrap_angle
-from scenegen_jax.vector_map import rotation_matrix
+from scenegen_jax.vector_map import rotation_matrix, se2_pose
 
 __all__ = [
     "CLASS_FROM_TYPE",
@@ -150,11 +150,6 @@ class ImportedFrame(NamedTuple):
     dropped: collections.Counter
 
 
-def _se2(x: float, y: float, theta: float) -> np.ndarray:
-    c, s = np.cos(theta), np.sin(theta)
-    return np.array([[c, -s, x], [s, c, y], [0.0, 0.0, 1.0]])
-
-
 def frames_from_scenario(
     scenario: Mapping,
     source: str,
@@ -190,6 +185,9 @@ def frames_from_scenario(
         that length >= width and its heading unchanged.
       - "quirk:velocity_mismatch": the file's velocities (which are used) disagree with its
         positions (`velocity_mismatch`); counted once per file, in the first frame.
+      - "quirk:constant_boxes": every vehicle of the file has one box size
+        (`constant_boxes`), a converter's constant rather than a measurement: every actor's
+        `size_measured` is False; counted once per file, in the first frame.
       Map features the VectorMap cannot hold ("map:<TYPE>", see `map_from_features`) are
       counted once per file, in the first frame.
 
@@ -213,6 +211,7 @@ def frames_from_scenario(
     own_id = (str(meta["scenegen_scene_id"]) if length == 1 and "scenegen_scene_id" in meta
               else None)  # our own one-step export's scene id
     mismatch = bool(steps) and velocity_mismatch(list(read.values()), _step_times(scenario, length))
+    measured = not constant_boxes(read.values())
 
     out = []
     for t in steps:
@@ -225,12 +224,33 @@ def frames_from_scenario(
         scene_id = own_id if own_id is not None else f"{scenario_id}/{t}"
         frame = _frame_at(t, read, sdc_id, (ego_w, ego_l), world_map, city_from_world, scene_id,
                           source, map_radius_m, dropped)
+        if not measured:
+            frame.size_measured = np.zeros(frame.num_actors, bool)
         out.append(ImportedFrame(frame, dropped))
     if mismatch and out:
         out[0].dropped["quirk:velocity_mismatch"] += 1
+    if not measured and out:
+        out[0].dropped["quirk:constant_boxes"] += 1
     if no_ego:
         out[0].dropped["frame:no_ego"] += no_ego
     return out
+
+
+def constant_boxes(tracks) -> bool:
+    """Whether the boxes of a file's tracks are a converter's constants, not measurements:
+    at least two vehicles, and every vehicle at every valid step of one (width, length).
+    ScenarioNet's Argoverse 2 converter writes 4.0 x 2.0 m for every vehicle (the forecasting
+    data set has no boxes); real boxes of two vehicles never agree to the bit."""
+    sizes = set()
+    vehicles = 0
+    for tr in tracks:
+        if CLASS_FROM_TYPE.get(tr.type) != VEHICLE or not tr.valid.any():
+            continue
+        vehicles += 1
+        sizes.update(zip(tr.width[tr.valid].tolist(), tr.length[tr.valid].tolist(), strict=True))
+        if len(sizes) > 1:
+            return False
+    return vehicles >= 2
 
 
 def _scenario_tracks(scenario: Mapping, source: str) -> tuple[Mapping, dict]:
@@ -374,7 +394,7 @@ def _frame_at(t: int, read: dict, sdc_id: str, ego_size: tuple[float, float], wo
         ego_velocity=ego_from_world @ sdc.velocity[t],
         ego_size=np.array(ego_size, np.float64),
         map=vmap,
-        city_from_ego=city_from_world @ _se2(x0, y0, h0),
+        city_from_ego=city_from_world @ se2_pose(x0, y0, h0),
     )
 
 

@@ -54,14 +54,17 @@ def is_relative_direction(cls: jnp.ndarray) -> jnp.ndarray:
     return (cls == VEHICLE) | (cls == BICYCLIST)
 
 
-def term_masks(cls: jnp.ndarray, is_stop: jnp.ndarray) -> dict[str, jnp.ndarray]:
-    """bool per term: which terms of `actor_log_likelihood` this target contributes."""
+def term_masks(cls: jnp.ndarray, is_stop: jnp.ndarray,
+               size_measured: jnp.ndarray | None = None) -> dict[str, jnp.ndarray]:
+    """bool per term: which terms of `actor_log_likelihood` this target contributes (the box
+    term only where the size was measured: `Actors.size_measured`, None for all)."""
     actor = jnp.logical_not(is_stop) & (cls != STOP)
     boxed = actor & (cls != PEDESTRIAN)
+    measured = boxed if size_measured is None else boxed & size_measured
     return {
         "class": jnp.ones_like(actor),
         "location": actor,
-        "box": boxed,
+        "box": measured,
         "heading": boxed,
         "velocity": actor,
     }
@@ -77,8 +80,9 @@ def actor_log_likelihood(
     """Per-term log-likelihoods of one target actor (or the stop token).
 
     Masking: the stop token contributes the class term only; pedestrians get no box or
-    heading term. Masked terms are exactly 0 with zero (never NaN) gradients, whatever the
-    target's unused fields hold. `valid` of the target is ignored (mask padding outside).
+    heading term, actors whose size the source did not measure no box term. Masked terms
+    are exactly 0 with zero (never NaN) gradients, whatever the target's unused fields hold.
+    `valid` of the target is ignored (mask padding outside).
 
     Args:
       head: head outputs at this step; location and attribute params of the target class.
@@ -94,7 +98,7 @@ def actor_log_likelihood(
       "heading" (log 1/rad), "velocity" (log 1/(m/s)^2, or log prob of v = 0).
     """
     _ = head.num_mixtures  # validates the layout sizes at trace time
-    masks = term_masks(target.cls, is_stop)
+    masks = term_masks(target.cls, is_stop, target.size_measured)
     stop = jnp.logical_not(masks["location"])
     cls = jnp.where(stop, STOP, target.cls)
     out = {"class": categorical.class_log_prob(head.class_logits, cls)}
@@ -109,7 +113,7 @@ def actor_log_likelihood(
 
     # Unused target fields may be garbage (zeros for padding); feed safe values instead.
     size = jnp.where(masks["box"], target.size, jnp.ones_like(target.size))
-    heading = jnp.where(masks["box"], target.heading, 0.0)
+    heading = jnp.where(masks["heading"], target.heading, 0.0)
     velocity = jnp.where(masks["velocity"], target.velocity, jnp.zeros_like(target.velocity))
     out["box"] = mixtures.box_log_prob(head.box, size)
     out["heading"] = mixtures.heading_log_prob(head.heading, heading)

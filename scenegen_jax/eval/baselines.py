@@ -20,6 +20,7 @@ import dataclasses
 from collections.abc import Iterable
 from typing import Any
 
+import jax
 import numpy as np
 
 from scenegen_jax.config import Config
@@ -212,8 +213,7 @@ def pad_actors(cls, position, size, heading, velocity, cfg: Config) -> Actors:
         velocity=pad(velocity, (2,), np.float32),
         valid=np.arange(slots) < n,
     )
-    ordered = canonical_order(actors, cfg.grid)
-    return Actors(*(np.asarray(getattr(ordered, f.name)) for f in dataclasses.fields(Actors)))
+    return jax.tree.map(np.asarray, canonical_order(actors, cfg.grid))
 
 
 # ------------------------------------------------------------------------ Prob. Grammar
@@ -291,9 +291,7 @@ def _iter_scenes(scenes: Any) -> Iterable[Any]:
     valid = getattr(scenes, "valid", None)
     if valid is not None and np.ndim(valid) == 2:  # batched Actors [S, N]
         for i in range(np.shape(valid)[0]):
-            yield {
-                f.name: np.asarray(getattr(scenes, f.name))[i] for f in dataclasses.fields(Actors)
-            }
+            yield jax.tree.map(lambda x, i=i: np.asarray(x)[i], scenes)
     else:
         yield from scenes
 
@@ -307,13 +305,15 @@ def fit_size_kde(train_scenes: Any, region_m: float | None = None) -> SizeKDE:
       region_m: if given, only actors inside the region of this side (m) count.
 
     Returns:
-      SizeKDE; a class with fewer than two training boxes is left out.
+      SizeKDE; a class with fewer than two training boxes is left out. Boxes the source did
+      not measure (placeholders) are not fitted.
     """
     sizes: dict[int, list[np.ndarray]] = {VEHICLE: [], BICYCLIST: []}
     for scene in _iter_scenes(train_scenes):
         a = scene_arrays(scene, region_m)
         for c in sizes:
-            sizes[c].append(np.asarray(a["size"], np.float64).reshape(-1, 2)[a["cls"] == c])
+            keep = (a["cls"] == c) & a["size_measured"]
+            sizes[c].append(np.asarray(a["size"], np.float64).reshape(-1, 2)[keep])
     log_sizes, kernel_cov = {}, {}
     for c, rows in sizes.items():
         x = np.log(np.concatenate(rows)) if rows else np.zeros((0, 2))

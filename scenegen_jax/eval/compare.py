@@ -14,10 +14,12 @@ import zipfile
 import numpy as np
 
 from scenegen_jax.distributions import TERMS
-from scenegen_jax.eval.nll import actor_steps
+from scenegen_jax.eval.nll import actor_steps, box_scored
 from scenegen_jax.scene import CLASS_NAMES
 
 FIELDS = (*TERMS, "step_valid", "step_cls")
+# Files written before scores recorded which boxes were measured lack it: all were.
+OPTIONAL_FIELDS = ("step_size_measured",)
 
 
 def load_scores(path: str) -> dict[str, np.ndarray]:
@@ -30,14 +32,14 @@ def load_scores(path: str) -> dict[str, np.ndarray]:
         if not isinstance(loaded, np.lib.npyio.NpzFile):  # a .npy: one array
             raise TypeError(f"one {loaded.dtype} array of shape {loaded.shape}")
         with loaded as f:  # object arrays fail here, as they are read
-            scores = {k: f[k] for k in FIELDS if k in f.files}
+            scores = {k: f[k] for k in (*FIELDS, *OPTIONAL_FIELDS) if k in f.files}
     except (ValueError, TypeError, zipfile.BadZipFile) as e:  # pickled data, not a zip
         raise ValueError(f"{not_npz} ({e})") from e
     missing = [k for k in FIELDS if k not in scores]
     if missing:
         raise ValueError(f"{path}: missing field {missing[0]!r} (not a --actors-out file?)")
     shape = scores["step_valid"].shape
-    for k in FIELDS:
+    for k in scores:
         if scores[k].shape != shape:
             raise ValueError(f"{path}: field {k!r}: shape {scores[k].shape}, step_valid's "
                              f"is {shape}")
@@ -50,11 +52,12 @@ def load_scores(path: str) -> dict[str, np.ndarray]:
 
 def actor_sums(scores: dict, term: str, cls: int | None) -> tuple[np.ndarray, np.ndarray]:
     """Per scene: (sum of `term` NLL over its actors of class `cls`, their count) [S] each;
-    cls None takes every class (not the stop token). term "total" sums all terms."""
+    cls None takes every class (not the stop token). term "total" sums all terms; the box
+    term counts only the actors whose box was scored (`nll.box_scored`)."""
     if term != "total" and term not in TERMS:
         raise ValueError(f"term {term!r}: expected 'total' or one of {TERMS}")
     values = sum(scores[k] for k in TERMS) if term == "total" else scores[term]
-    actor = actor_steps(scores)
+    actor = box_scored(scores) if term == "box" else actor_steps(scores)
     if cls is not None:
         actor = actor & (scores["step_cls"] == cls)
     return np.where(actor, values, 0.0).sum(1), actor.sum(1)

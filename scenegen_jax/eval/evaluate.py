@@ -131,6 +131,13 @@ def format_table(report: dict) -> str:
                      f"{_share(r['lane_aligned_share'])} ({r['vehicles_on_lane']}) | "
                      f"{_degrees(r.get('lane_offset_median_deg'))} | "
                      f"{r['overlapping_pairs']} | {r['actors_per_scene']:.1f} | {mix}")
+    unmeasured = sum(nll.get(f"box_unmeasured_{n}", 0) for n in ("vehicle", "bicyclist"))
+    if unmeasured:
+        lines.append("")
+        lines.append(f"{unmeasured} scored actors had no measured box size: their box term is "
+                     f"left out of the NLL; {report['realism']['real']['boxes_unmeasured']} "
+                     "of the real scenes' boxes above are placeholders (overlaps, area MMD "
+                     "without them)")
     by_source = report.get("nll_by_source") or {}
     if len(by_source) > 1:
         lines.append("")

@@ -63,14 +63,16 @@ def scene_arrays(scene: Any, region_m: float | None = None) -> dict[str, np.ndar
 
     Args:
       scene: `Actors` (leading axis N), `Scene`, `Frame` or a mapping with keys cls, position,
-        size, heading, velocity and optionally valid (bool [N]) and ego_heading (rad).
+        size, heading, velocity and optionally valid (bool [N]), size_measured (bool [N])
+        and ego_heading (rad).
       region_m: if given, keep only actors whose centre lies in the square region of this
         side (m) centred on the ego, as `scene.in_region` (caches and Frames hold actors
         beyond the region).
 
     Returns:
       dict with cls int [A], position [A, 2] m, size [A, 2] m, heading [A] rad,
-      velocity [A, 2] m/s (valid actors only) and ego_heading (float, rad).
+      velocity [A, 2] m/s, size_measured bool [A] (valid actors only) and ego_heading
+      (float, rad).
     """
     ego_heading = 0.0
     if hasattr(scene, "actors") and hasattr(scene, "ego"):  # Scene
@@ -79,6 +81,7 @@ def scene_arrays(scene: Any, region_m: float | None = None) -> dict[str, np.ndar
     if isinstance(scene, Mapping):
         get = scene.__getitem__
         valid = scene.get("valid")
+        measured = scene.get("size_measured")
         ego_heading = float(scene.get("ego_heading", ego_heading))
     else:
 
@@ -86,6 +89,7 @@ def scene_arrays(scene: Any, region_m: float | None = None) -> dict[str, np.ndar
             return getattr(scene, name)
 
         valid = getattr(scene, "valid", None)
+        measured = getattr(scene, "size_measured", None)
     out = {name: np.asarray(get(name)) for name in _FIELDS}
     if out["cls"].ndim != 1:
         raise ValueError(f"scene.cls: expected one scene with shape [N], got {out['cls'].shape}")
@@ -93,6 +97,8 @@ def scene_arrays(scene: Any, region_m: float | None = None) -> dict[str, np.ndar
     mask = np.ones(n, bool) if valid is None else np.asarray(valid, bool)
     if mask.shape != (n,):
         raise ValueError(f"scene.valid: shape {mask.shape} does not match cls {(n,)}")
+    out["size_measured"] = (np.ones(n, bool) if measured is None
+                            else np.broadcast_to(np.asarray(measured, bool), (n,)))
     if region_m is not None:
         pos = out["position"].reshape(n, 2)
         mask = mask & np.all((pos >= -region_m / 2) & (pos < region_m / 2), axis=-1)
@@ -132,7 +138,8 @@ def scene_statistics(
     rel_heading = np.mod(a["heading"] - a["ego_heading"] + 0.5 * HEADING_WIDTH, 2 * np.pi)
     values = {
         "class": (cls, members),
-        "area": (a["size"][:, 0] * a["size"][:, 1], boxed),
+        # a size the source did not measure is a placeholder, not a statistic of the scene
+        "area": (a["size"][:, 0] * a["size"][:, 1], boxed & a["size_measured"]),
         "speed": (np.linalg.norm(a["velocity"], axis=-1), members),
         "heading": (rel_heading - 0.5 * HEADING_WIDTH, boxed),
     }

@@ -22,18 +22,21 @@ from scenegen_jax.config import Config, ModelConfig
 from scenegen_jax.data.cache import Cache
 from scenegen_jax.distributions import TERMS
 from scenegen_jax.likelihood.batch import Batch, check_batch, crop_batch, gather_batch, to_device
+from scenegen_jax.likelihood.terms import step_size_measured
 from scenegen_jax.likelihood.unroll import unroll_terms
-from scenegen_jax.scene import CLASS_NAMES, STOP
+from scenegen_jax.scene import CLASS_NAMES, PEDESTRIAN, STOP
 
 
 def score_batch(params, batch: Batch, cfg: ModelConfig) -> dict:
-    """Per-step NLL terms of a batch: dict term -> [B, T] (nats), plus step class and mask."""
+    """Per-step NLL terms of a batch: dict term -> [B, T] (nats), plus step class and mask,
+    and whether the step's actor had a measured box size (`Actors.size_measured`)."""
     maps, scene = crop_batch(batch, jnp.zeros(batch.actors.cls.shape[0]), cfg.grid)
     terms, step_valid, step_cls = unroll_terms(params, cfg, maps, scene, None,
                                                differentiated=False)
     out = {k: -v for k, v in terms.items()}
     out["step_valid"] = step_valid
     out["step_cls"] = step_cls
+    out["step_size_measured"] = step_size_measured(scene.actors, step_cls.shape[1])
     return out
 
 
@@ -60,7 +63,8 @@ def score_cache(params, cache: Cache, cfg: Config, batch_size: int = 8, progress
 
     Returns:
       dict with per-step arrays over the scenes: term -> [S, T] NLL (nats), "step_valid"
-      [S, T], "step_cls" [S, T] (STOP at the stop step).
+      [S, T], "step_cls" [S, T] (STOP at the stop step), "step_size_measured" [S, T] (the
+      step's actor had a measured box size; its box NLL is 0 otherwise).
     """
     cache.check_config(cfg)
     scenes = range(len(cache)) if scenes is None else scenes
@@ -104,9 +108,19 @@ def complete_scenes(scores: dict) -> np.ndarray:
     return np.any(scores["step_valid"] & (scores["step_cls"] == STOP), axis=1)
 
 
+def box_scored(scores: dict) -> np.ndarray:
+    """[S, T] mask of the steps whose box term was scored: actors of a boxed class whose box
+    size the source measured (scores of a version without `step_size_measured`: all)."""
+    measured = scores.get("step_size_measured", np.ones_like(scores["step_valid"]))
+    boxed = (scores["step_cls"] != PEDESTRIAN) & actor_steps(scores)
+    return boxed & measured
+
+
 def summarize_scores(scores: dict) -> dict:
     """Mean scene NLL and mean per-actor NLL by class and by term (paper Table 2 columns),
-    and the number of scenes truncated to max_actors (`complete_scenes`)."""
+    and the number of scenes truncated to max_actors (`complete_scenes`). The box term is
+    averaged over the actors whose box size was measured (`box_actors_<class>`); the others'
+    count is `box_unmeasured_<class>`."""
     total = sum(scores[k] for k in TERMS)
     valid, cls = scores["step_valid"], scores["step_cls"]
     out = {"scenes": int(total.shape[0]), "scene_nll": float(np.mean(np.sum(total, axis=1))),
@@ -118,6 +132,12 @@ def summarize_scores(scores: dict) -> dict:
         out[f"nll_per_{name}"] = float(total[m].sum() / count) if count else None
         for k in TERMS:
             out[f"{k}_nll_per_{name}"] = float(scores[k][m].sum() / count) if count else None
+        if c != PEDESTRIAN:
+            boxed = m & box_scored(scores)
+            out[f"box_actors_{name}"] = int(boxed.sum())
+            out[f"box_unmeasured_{name}"] = count - int(boxed.sum())
+            out[f"box_nll_per_{name}"] = (float(scores["box"][boxed].sum() / boxed.sum())
+                                          if boxed.any() else None)
     actor = actor_steps(scores)
     out["nll_per_actor"] = float(total[actor].sum() / max(actor.sum(), 1))
     return out

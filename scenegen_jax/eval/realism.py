@@ -94,9 +94,11 @@ def lane_alignment(canvas: np.ndarray, actors, cfg: Config, radius_m: float = 40
 
 def overlapping_pairs(actors) -> int:
     """Pairs of valid vehicle and bicyclist boxes of one scene that overlap with positive area
-    (pedestrians are points, as in the sampler's collision rejection)."""
+    (pedestrians are points, as in the sampler's collision rejection; boxes the source did
+    not measure are placeholders and left out)."""
     a = jax.tree.map(np.asarray, actors)
-    boxed = np.flatnonzero(a.valid & (a.cls != PEDESTRIAN))
+    measured = True if a.size_measured is None else a.size_measured.astype(bool)
+    boxed = np.flatnonzero(a.valid & (a.cls != PEDESTRIAN) & measured)
     pos, size = a.position.astype(np.float64), a.size.astype(np.float64)
     head = a.heading.astype(np.float64)
     return int(sum(
@@ -111,7 +113,8 @@ def realism_stats(canvases, actors_list, cfg: Config) -> dict:
     vehicles within 40 m of the ego and the share of them on the drivable area; vehicles on a
     lane, the share of them aligned with it and the median angle between the aligned ones and
     their lane (how closely vehicles that follow a lane follow it); overlapping box pairs
-    (total and scenes with any); actors per scene; the class mix."""
+    (total and scenes with any; boxes the source did not measure are placeholders, counted
+    in `boxes_unmeasured`); actors per scene; the class mix."""
     on = total = 0
     offsets, overlaps = [], []
     for canvas, actors in zip(canvases, actors_list, strict=True):
@@ -129,9 +132,19 @@ def realism_stats(canvases, actors_list, cfg: Config) -> dict:
         "lane_offset_median_deg": float(np.median(aligned)) if len(aligned) else None,
         "overlapping_pairs": int(sum(overlaps)),
         "scenes_with_overlap": int(np.count_nonzero(overlaps)),
+        "boxes_unmeasured": int(sum(unmeasured_boxes(a) for a in actors_list)),
         "actors_per_scene": float(np.mean([np.sum(a.valid) for a in actors_list])),
         "class_mix": class_mix(actors_list),
     }
+
+
+def unmeasured_boxes(actors) -> int:
+    """Valid vehicles and bicyclists of one scene whose box size the source did not measure
+    (`Actors.size_measured`)."""
+    if getattr(actors, "size_measured", None) is None:
+        return 0
+    a = jax.tree.map(np.asarray, actors)
+    return int(np.sum(a.valid & (a.cls != PEDESTRIAN) & ~a.size_measured.astype(bool)))
 
 
 def class_mix(actors_list) -> dict[str, float]:

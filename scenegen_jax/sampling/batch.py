@@ -253,13 +253,14 @@ def batch_inputs(cfg: Config, num_maps: int, given: Actors | None = None, caps=N
     """(given Actors [B, N], caps int32 [B, 3]) for `sample_batch` from optional inputs.
 
     `given` may be None, Actors [G] (shared by all maps) or Actors [B, G]; `caps` None, [3]
-    or [B, 3].
+    or [B, 3]. Given actors' `size_measured` is dropped: a sampled scene's boxes are the
+    sampler's, whether the given ones were measured or not.
     """
     n = cfg.grid.max_actors
     if given is None:  # numpy: no compiled program
         given = jax.tree.map(lambda x: np.broadcast_to(x, (num_maps, *x.shape)), empty_actors(n))
     else:
-        given = jax.tree.map(jnp.asarray, given)
+        given = jax.tree.map(jnp.asarray, given.replace(size_measured=None))
         if given.cls.ndim == 1:
             given = jax.tree.map(lambda x: jnp.broadcast_to(x, (num_maps, *x.shape)), given)
         given = jax.vmap(lambda g: pad_given(g, n))(given)

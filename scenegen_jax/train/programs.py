@@ -90,7 +90,7 @@ class SplitTrainStep:
             _, map_vjp = map_gates_and_vjp(state.params, cfg.model, maps)
             terms = jax.tree.map(lambda *x: jnp.stack(x), *terms)
             unrolled, grads = grads_epilogue(map_vjp, scenes, (None, g_params, g_map), terms)
-            return apply_grads(state, cfg, unrolled, grads, 1, None)
+            return apply_grads(state, cfg, unrolled, scenes.actors, grads, 1, None)
 
         light = functools.partial(jax.jit, compiler_options=quick_train_compiler_options())
         jit = (

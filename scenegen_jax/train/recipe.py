@@ -12,7 +12,7 @@ from tqdm import tqdm
 from scenegen_jax.config import Config, get_config
 from scenegen_jax.recipes import Recipe, Run
 from scenegen_jax.train.loop import train
-from scenegen_jax.workdir import CONFIG_FILE, load_params
+from scenegen_jax.workdir import check_model_target, has_checkpoint, load_params
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +60,7 @@ def train_run(recipe: Recipe, run: Run, workdir: str, caches: dict[str, str],
     for index, phase in enumerate(run.phases):
         path = phase_workdir(workdir, run, index)
         init = previous if phase.init_from_previous else None
-        if init is not None and not os.path.exists(os.path.join(path, CONFIG_FILE)):
+        if init is not None and not has_checkpoint(path):
             log.info("%s/%s starts from %s", run.name, phase.name, init)
         train(phase_config(recipe, run, index), [caches[n] for n in phase.data], path,
               phase.steps, save_every=recipe.save_every, keep=1, progress=progress,
@@ -81,6 +81,8 @@ def run_recipe(recipe: Recipe, workdir: str, cache_dir: str, data_root: str,
     if out is not None and recipe.model_run not in [run.name for run in selected]:
         raise ValueError(f"--out exports the recipe's model, run {recipe.model_run!r}: "
                          f"include it in --run (or leave --run out)")
+    if out is not None:
+        check_model_target("--out", out)
     needed = sorted({n for run in selected for phase in run.phases for n in phase.data})
     caches = prepare_caches(recipe, cache_dir, data_root, needed, workers)
     done = {run.name: train_run(recipe, run, workdir, caches, progress) for run in selected}

@@ -159,7 +159,8 @@ def loss_fn(params, cfg: Config, maps, scene):
     return mean_nll(
         unroll_terms(
             params, cfg.model, maps, scene, cfg.train.hard_negatives, remat=cfg.train.remat
-        )
+        ),
+        scene.actors,
     )
 
 
@@ -193,11 +194,12 @@ def step_inputs(state: TrainState, batch: Batch, cfg: Config, axis: str | None):
     return maps, scene, b, devices
 
 
-def apply_grads(state: TrainState, cfg: Config, unrolled, grads, devices, axis: str | None):
-    """(next state, stats): the loss and stats of the unrolled terms, summed with the
-    gradient over the devices in one all-reduce (`axis`), the optimizer's update and the
-    moving average's (`update_ema`)."""
-    loss, stats = mean_nll(unrolled)
+def apply_grads(state: TrainState, cfg: Config, unrolled, actors, grads, devices,
+                axis: str | None):
+    """(next state, stats): the loss and stats of the unrolled terms (of `actors`, canonically
+    ordered), summed with the gradient over the devices in one all-reduce (`axis`), the
+    optimizer's update and the moving average's (`update_ema`)."""
+    loss, stats = mean_nll(unrolled, actors)
     grads, stats, loss = _psum_packed((grads, stats, loss / devices), axis)
     updates, opt_state = make_optimizer(cfg).update(grads, state.opt_state, state.params)
     params = optax.apply_updates(state.params, updates)
@@ -221,7 +223,7 @@ def train_step(
     unrolled, grads = unroll_terms_and_grads(
         state.params, cfg.model, maps, scene, 1.0 / b, cfg.train.hard_negatives, cfg.train.remat
     )
-    return apply_grads(state, cfg, unrolled, grads, devices, axis)
+    return apply_grads(state, cfg, unrolled, scene.actors, grads, devices, axis)
 
 
 # The train step's buffers without remat, bytes per scene, step of a window and pixel of the

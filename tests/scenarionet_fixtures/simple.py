@@ -88,7 +88,7 @@ def standard_scenario(t_len: int = 3) -> dict:
     ped_valid = [True] * (t_len - 1) + [False]
     tracks = {
         "AV": track("VEHICLE", sdc_xy, np.pi / 2, [0.0, 10.0]),
-        "11": track("VEHICLE", [100.0, 60.0], 0.0, [0.0, 0.0]),
+        "11": track("VEHICLE", [100.0, 60.0], 0.0, [0.0, 0.0], length=4.6),
         "12": track("PEDESTRIAN", [95.0, 50.0], 0.0, [1.0, 0.0], 0.5, 0.5, valid=ped_valid),
         "13": track("OTHER", [90.0, 40.0], 0.0, [0.0, 0.0]),
         "14": track("CYCLIST", [101.0, 45.0], 4.0, [0.0, 0.0], 1.8, 0.7),

@@ -1,0 +1,88 @@
+"""Two writers of one cache, and stop signals: a second `prepare` into a cache being written
+is refused naming the first; SIGTERM stops `prepare` as Ctrl-C does, leaving no partial file,
+no lock and no worker process; a stop whose exception Python swallowed still stops."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from scenegen_jax import signals
+from scenegen_jax.config import get_config
+from scenegen_jax.data.cache_write import CacheWriter
+from scenegen_jax.locks import LockHeld
+
+
+def test_a_second_writer_of_a_cache_is_refused_naming_the_first(tmp_path):
+    cfg = get_config("tiny")
+    with CacheWriter(str(tmp_path), cfg):
+        assert os.path.exists(tmp_path / ".lock")
+        assert any(n.startswith("maps.npy.") and n.endswith(".tmp") for n in os.listdir(tmp_path))
+        with pytest.raises(LockHeld, match=rf"\.lock: locked by pid {os.getpid()} "):
+            CacheWriter(str(tmp_path), cfg)
+    assert os.listdir(tmp_path) == []  # no scenes written: nothing left, the lock released
+    with CacheWriter(str(tmp_path), cfg):  # free again
+        pass
+
+
+def _children(pid: int) -> set[int]:
+    out = set()
+    for task in os.listdir(f"/proc/{pid}/task"):
+        with open(f"/proc/{pid}/task/{task}/children") as f:
+            out.update(int(c) for c in f.read().split())
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(")")[-1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="reads /proc")
+def test_sigterm_to_prepare_alone_removes_its_outputs_and_ends_its_workers(tmp_path, data_root):
+    """SIGTERM to the parent only (not its process group), while its two workers read."""
+    out = tmp_path / "cache"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "scenegen_jax.cli", "prepare", "--source", "av2", "--root",
+         data_root, "--split", "train", "--config", "tiny", "--stride", "1", "--workers", "2",
+         "--out", str(out)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    workers: set[int] = set()
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:
+        workers |= _children(proc.pid)
+        if len(workers) >= 2 and out.is_dir() and any(".tmp" in n for n in os.listdir(out)):
+            break
+        time.sleep(0.2)
+    assert proc.poll() is None, proc.communicate()
+    time.sleep(1.0)
+    workers |= _children(proc.pid)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    assert "Traceback" not in err and "interrupted (SIGTERM)" in err
+    assert sorted(os.listdir(out)) == []  # no maps.npy.<pid>.tmp, no .lock, no cache
+    deadline = time.monotonic() + 60
+    while any(_alive(w) for w in workers) and time.monotonic() < deadline:
+        time.sleep(0.5)
+    assert not [w for w in workers if _alive(w)]
+
+
+def test_a_swallowed_stop_is_raised_at_the_next_check(monkeypatch):
+    """The handler's exception can rise where Python drops it (a garbage-collector callback);
+    the recorded signal is raised again at the next `raise_pending`, once."""
+    monkeypatch.setattr(signals, "_received", [])
+    with pytest.raises(signals.Stopped):
+        signals._handler(signal.SIGTERM, None)  # as if dropped by its caller
+    with pytest.raises(signals.Stopped) as e:
+        signals.raise_pending()
+    assert e.value.exit_status == 143 and isinstance(e.value, KeyboardInterrupt)
+    signals.raise_pending()  # nothing pending any more
