@@ -45,7 +45,8 @@ def pytest_configure(config):
 # The modules that take longest, slowest first (by `--durations=0` on two workers; the rest
 # are short): each xdist worker takes the next whole module when it is nearly done with its last, in
 # this order, then the rest in file order, so that the short ones even out the end.
-SLOWEST_MODULES = ("test_unroll.py", "test_train_step.py", "test_distributed.py",
+SLOWEST_MODULES = ("test_unroll.py", "test_stress.py", "test_train_step.py",
+                   "test_distributed.py",
                    "test_recipe.py", "test_train_loop.py", "test_api.py",
                    "test_warm_start.py", "test_sampling_network.py",
                    "test_womd_json.py", "test_scoring.py", "test_checkpoint.py",
