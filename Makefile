@@ -28,10 +28,11 @@ test: install
 	echo "make test: $$(( $$(date +%s) - start )) s wall"; exit $$rc
 
 # The fuzzed input surface with many more damaged inputs per reader than `make test` runs
-# (tests/test_fuzz.py; each run draws new ones, and a failure prints how to reproduce it),
+# (tests/test_fuzz.py, and odd names and links in tests/test_fuzz_paths.py; each run draws
+# new ones, and a failure prints how to reproduce it),
 # and 20 stops at random moments of the commands (tests/test_stress.py, by seed).
 fuzz: install
-	HYPOTHESIS_PROFILE=fuzz $(BIN)/python -m pytest -q tests/test_fuzz.py
+	HYPOTHESIS_PROFILE=fuzz $(BIN)/python -m pytest -q tests/test_fuzz.py tests/test_fuzz_paths.py
 	SCENEGEN_STRESS_SEEDS=20 $(BIN)/python -m pytest -q tests/test_stress.py
 
 lint: install

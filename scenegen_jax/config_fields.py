@@ -97,6 +97,21 @@ def int_problem(name: str, value: Any, least: int, below: int = INT_LIMIT) -> st
     return None
 
 
+def slots_problem(grid_size: Any, max_actors: Any) -> str | None:
+    """Why a scene of a `grid_size` grid cannot have `max_actors` slots: more than the grid
+    has location bins. Each slot is one step of the sequential unroll over a full grid of
+    activations, and a region holding more actors than its bins would put several road
+    users in one bin, which the occupancy rasters cannot tell apart; None if it can (or
+    either is not a positive integer, which `int_problem` reports)."""
+    if not all(isinstance(v, int) and not isinstance(v, bool) and v >= 1
+               for v in (grid_size, max_actors)):
+        return None
+    if max_actors > grid_size**2:
+        return f"max_actors: must be at most {grid_size**2} (the grid's {grid_size} x " \
+               f"{grid_size} location bins), got {max_actors}"
+    return None
+
+
 def config_problems(cfg) -> list[str]:
     """Every field value of `cfg` that cannot work, with the reason (empty if none)."""
     out = []
@@ -115,6 +130,8 @@ def config_problems(cfg) -> list[str]:
                      "num_mixtures", "hard_negatives", "bptt_window", "batch_size", "proposals")
     out += [p for name in positive_ints if (p := int_problem(name, getattr(cfg, name), 1))]
     if problem := int_problem("seed", cfg.seed, 0, SEED_LIMIT):
+        out.append(problem)
+    if problem := slots_problem(cfg.grid_size, cfg.max_actors):
         out.append(problem)
     if isinstance(cfg.hidden, int) and isinstance(cfg.gn_groups, int) and cfg.gn_groups >= 1 \
             and cfg.hidden % cfg.gn_groups:

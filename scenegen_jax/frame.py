@@ -62,6 +62,31 @@ class Frame:
 # than MAX_SIZE_M (articulated buses are ~18 m) and speeds above MAX_SPEED_MPS (360 km/h).
 MAX_SIZE_M = 30.0
 MAX_SPEED_MPS = 100.0
+# Beyond this |x| or |y| (m) a world coordinate is damaged, not a place: the data sets' world
+# frames (UTM zones, city frames) span at most about 1e6 m, and relative positions taken
+# between coordinates near 1e300 round to 0 (every actor at the ego).
+MAX_WORLD_M = 1e7
+
+
+def within_world(points: np.ndarray) -> np.ndarray:
+    """bool [...] of points [..., 2] m: finite and within MAX_WORLD_M in x and y."""
+    return np.all(np.abs(np.asarray(points, np.float64)) <= MAX_WORLD_M, axis=-1)
+
+
+def speed(velocity: np.ndarray) -> np.ndarray:
+    """[...] m/s of velocities [..., 2] m/s; inf, not an overflow warning, beyond float64."""
+    with np.errstate(over="ignore"):
+        return np.hypot(*np.moveaxis(np.asarray(velocity, np.float64), -1, 0))
+
+
+def size_beyond_limits(size: np.ndarray) -> np.ndarray:
+    """bool [...] of box sizes [..., 2] (width, length) m: a side beyond MAX_SIZE_M (or NaN)."""
+    return ~np.all(np.asarray(size, np.float64) <= MAX_SIZE_M, axis=-1)
+
+
+def speed_beyond_limits(velocity: np.ndarray) -> np.ndarray:
+    """bool [...] of velocities [..., 2] m/s: a speed beyond MAX_SPEED_MPS (or NaN)."""
+    return ~(speed(velocity) <= MAX_SPEED_MPS)
 
 
 def drop_beyond_limits(frame: Frame) -> tuple[Frame, collections.Counter]:
@@ -69,19 +94,23 @@ def drop_beyond_limits(frame: Frame) -> tuple[Frame, collections.Counter]:
     count by reason ("invalid:size", "invalid:speed").
 
     Raises:
-      ValueError naming the frame's source, scene and field when the ego is beyond them.
+      ValueError naming the frame's source, scene and field when the ego is beyond them, or
+      its world position (`city_from_ego`) beyond MAX_WORLD_M.
     """
     where = f"{frame.source}: scene {frame.scene_id}"
+    ego_xy = np.asarray(frame.city_from_ego, np.float64)[:2, 2]
+    if not within_world(ego_xy):
+        raise ValueError(f"{where}: ego position: ({ego_xy[0]:.4g}, {ego_xy[1]:.4g}) m in the "
+                         f"world frame, beyond {MAX_WORLD_M:g} m")
     ego_size = np.asarray(frame.ego_size, np.float64)
-    if not np.all(ego_size <= MAX_SIZE_M):
+    if size_beyond_limits(ego_size):
         raise ValueError(f"{where}: ego width/length: {ego_size.tolist()} m, beyond "
                          f"{MAX_SIZE_M:g} m")
-    ego_speed = float(np.linalg.norm(frame.ego_velocity))
-    if not ego_speed <= MAX_SPEED_MPS:
-        raise ValueError(f"{where}: ego velocity: speed {ego_speed:.4g} m/s, beyond "
-                         f"{MAX_SPEED_MPS:g} m/s")
-    too_big = ~np.all(np.asarray(frame.size, np.float64) <= MAX_SIZE_M, axis=1)
-    too_fast = ~too_big & ~(np.linalg.norm(frame.velocity, axis=1) <= MAX_SPEED_MPS)
+    if speed_beyond_limits(frame.ego_velocity):
+        raise ValueError(f"{where}: ego velocity: speed {float(speed(frame.ego_velocity)):.4g} "
+                         f"m/s, beyond {MAX_SPEED_MPS:g} m/s")
+    too_big = size_beyond_limits(np.reshape(frame.size, (-1, 2)))
+    too_fast = ~too_big & speed_beyond_limits(np.reshape(frame.velocity, (-1, 2)))
     drops = +collections.Counter({"invalid:size": int(too_big.sum()),
                                   "invalid:speed": int(too_fast.sum())})
     keep = ~(too_big | too_fast)

@@ -8,6 +8,20 @@ import shutil
 import tempfile
 
 import pytest
+from hypothesis import HealthCheck, settings
+
+# Hypothesis profiles of the fuzz tests. `make test`: the same 25 inputs per test on every run;
+# `make fuzz` (HYPOTHESIS_PROFILE=fuzz): 200 new ones per test on each run (a failure prints
+# the blob that reproduces it).
+_FUZZ_COMMON = dict(
+    deadline=None,
+    database=None,
+    print_blob=True,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+)
+settings.register_profile("default", max_examples=25, derandomize=True, **_FUZZ_COMMON)
+settings.register_profile("fuzz", max_examples=200, derandomize=False, **_FUZZ_COMMON)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default"))
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DATA_ROOT = os.path.normpath(os.path.join(REPO, "..", "shared", "data", "av2_sensor_mini"))

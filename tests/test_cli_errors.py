@@ -193,6 +193,26 @@ def _seed_beyond_32_bits(tmp_path, cache, data_root):
             "seed=99999999999999999999"], "seed: must be an integer below 4294967296"
 
 
+def _more_slots_than_bins(tmp_path, cache, data_root):
+    return ["train", "--data", cache, "--workdir", str(tmp_path / "w"), "--steps", "1", "--set",
+            "max_actors=100000"], "max_actors: must be at most 1024 (the grid's 32 x 32"
+
+
+def _temperature_below_the_least(command):
+    """`--location-temperature 1e-300` (0 in float32: every scene empty) is refused."""
+    def case(tmp_path, cache, data_root):
+        argv = {
+            "sample": ["sample", "--workdir", str(tmp_path / "w"), "--data", cache, "--num", "1",
+                       "--out", str(tmp_path / "s")],
+            "evaluate": ["evaluate", "--workdir", str(tmp_path / "w"), "--data", cache,
+                         "--train-data", cache, "--out", str(tmp_path / "e.json")],
+        }[command]
+        return ([*argv, "--location-temperature", "1e-300"],
+                "--location-temperature 1e-300: must be at least 0.001")
+    case.__name__ = f"_{command}_temperature_below_the_least"
+    return case
+
+
 def _train_into_a_cache(tmp_path, cache, data_root):
     c = _copy(cache, tmp_path)
     return (["train", "--data", cache, "--workdir", c, "--steps", "1"],
@@ -216,6 +236,8 @@ def _score_out_name_too_long(tmp_path, cache, data_root):
 
 CASES = [
     _seed_beyond_32_bits,
+    _more_slots_than_bins,
+    *(_temperature_below_the_least(c) for c in ("sample", "evaluate")),
     _train_into_a_cache,
     _train_into_an_exported_model,
     _score_out_name_too_long,
@@ -407,3 +429,15 @@ def test_render_prints_the_file_it_wrote(cache_dir, tmp_path, capsys):
     cli.main(["render", "--cache", cache_dir, "--out", str(out)])
     printed = capsys.readouterr().out.strip().splitlines()[-1]
     assert printed == f"{out}.png" and os.path.isfile(printed) and not out.exists()
+
+
+def test_render_turns_a_huge_angle_as_the_same_angle_modulo_360(cache_dir, tmp_path):
+    import matplotlib.image
+
+    def pixels(rotate: str):
+        out = tmp_path / f"r{rotate}.png"
+        cli.main(["render", "--cache", cache_dir, "--out", str(out), "--rotate", rotate])
+        return matplotlib.image.imread(out)
+
+    huge, reduced, unturned = pixels("1e308"), pixels("-64"), pixels("0")  # 1e308 = -64 (360)
+    assert (huge == reduced).all() and not (huge == unturned).all()

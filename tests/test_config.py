@@ -20,6 +20,8 @@ from scenegen_jax.config import PRESETS, Config, get_config
         ({"decay_steps": "-5"}, "decay_steps: must be an integer >= 0"),
         ({"batch_size": "0"}, "batch_size: must be an integer >= 1"),
         ({"max_actors": "0"}, "max_actors: must be an integer >= 1"),
+        ({"max_actors": "100000"}, r"max_actors: must be at most 1024 \(the grid's 32 x 32"),
+        ({"max_actors": "65", "grid_size": "8"}, "max_actors: must be at most 64"),
         ({"rotate_augment": "ture"}, "rotate_augment: must be true or false"),
         ({"remat": "1"}, "remat: must be true or false"),
         ({"learning_rate": "fast"}, "learning_rate: expected float"),

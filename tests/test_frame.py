@@ -42,3 +42,26 @@ def test_an_ego_beyond_the_limits_is_named():
         drop_beyond_limits(_frame([], np.zeros((0, 2)), ego_size=(2.0, 31.0)))
     with pytest.raises(ValueError, match=r"^f\.json: scene log/7: ego velocity: speed inf m/s"):
         drop_beyond_limits(_frame([], np.zeros((0, 2)), ego_velocity=(np.inf, 0.0)))
+
+
+def test_an_ego_beyond_the_world_range_is_named_in_every_source():
+    """Relative positions taken near 1e300 m round to 0 (every actor at the ego): an ego
+    whose world position (`city_from_ego`) is beyond MAX_WORLD_M makes the scene an error,
+    whichever reader made the frame."""
+    import warnings
+
+    from scenegen_jax.frame import MAX_WORLD_M
+
+    far = _frame([(2, 4.5)], [(0, 0)])
+    far.city_from_ego = np.array([[1.0, 0, 1e300], [0, 1, 1e300], [0, 0, 1]])
+    with pytest.raises(ValueError, match=r"^f\.json: scene log/7: ego position: \(1e\+300, "
+                       r"1e\+300\) m in the world frame, beyond 1e\+07 m$"):
+        drop_beyond_limits(far)
+    far.city_from_ego[:2, 2] = (-MAX_WORLD_M, MAX_WORLD_M)  # at the limit: a place
+    assert drop_beyond_limits(far)[0] is far
+    with warnings.catch_warnings():  # speeds near 1e308: counted, no overflow warning
+        warnings.simplefilter("error")
+        fast = _frame([(2, 4.5)], [(1e308, 1e308)])
+        assert drop_beyond_limits(fast)[1] == {"invalid:speed": 1}
+        with pytest.raises(ValueError, match=r"ego velocity: speed 1\.414e\+308 m/s"):
+            drop_beyond_limits(_frame([], np.zeros((0, 2)), ego_velocity=(1e308, 1e308)))

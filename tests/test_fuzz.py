@@ -12,8 +12,8 @@ read must hold only finite values; an Argoverse 2 log's rows are each an actor o
 drop, and a checkpoint restores bit for bit what was saved (the newest step or the one
 before it).
 
-The default profile runs a fixed, derandomized set of 25 examples per test (part of
-`make test`); HYPOTHESIS_PROFILE=fuzz (`make fuzz`) draws 200 new ones per test on each run.
+The default profile (conftest.py) runs a fixed, derandomized set of 25 examples per test (part
+of `make test`); HYPOTHESIS_PROFILE=fuzz (`make fuzz`) draws 200 new ones per test on each run.
 The counts per reader (clean errors + successful reads) are printed at the end of the module
 (`pytest -s`). The damaged copies live in pytest tmp dirs only.
 """
@@ -40,7 +40,7 @@ import pyarrow as pa
 import pyarrow.feather as feather
 import pytest
 from conftest import DATA_ROOT, WOMD_ROOT
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from scenegen_jax.checkpoint import CHECKSUM_FILE
@@ -57,18 +57,6 @@ from scenegen_jax.frame import MAX_SIZE_M
 from scenegen_jax.sampling.export import actors_from_records
 from scenegen_jax.scene import CLASS_NAMES
 from scenegen_jax.train.loop import load_trained, train
-
-_COMMON = dict(
-    deadline=None,
-    database=None,
-    print_blob=True,
-    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
-)
-# `make test`: the same 25 damaged inputs per test on every run.
-settings.register_profile("default", max_examples=25, derandomize=True, **_COMMON)
-# `make fuzz`: 200 new damaged inputs per test on each run (the failure blob reproduces one).
-settings.register_profile("fuzz", max_examples=200, derandomize=False, **_COMMON)
-settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default"))
 
 CLEAN_ERRORS = (ValueError, FileNotFoundError, IndexError)  # what cli.main prints as one line
 HANG_S = 60  # one damaged input must be read (or refused) well within this

@@ -1,20 +1,26 @@
 """The restricted unpickler (`data.safe_pickle`): code-running and unknown globals refused,
 numpy arrays and containers loaded at every protocol, truncated files named, atomic dumps,
-and MetaDrive's ScenarioDescription read as a dict."""
+MetaDrive's ScenarioDescription read as a dict, and pickles that build far more than their
+size refused before they build it."""
 
 from __future__ import annotations
 
 import collections
 import os
 import pickle
+import time
+import tracemalloc
 
 import numpy as np
 import pytest
 from scenarionet_fixtures import hand_frame
 
+from scenegen_jax.data import safe_pickle
 from scenegen_jax.data import scenarionet as sn
+from scenegen_jax.data.prepare import encode_file
 from scenegen_jax.data.safe_pickle import (
     CorruptPickleError,
+    OversizedPickleError,
     UnsafePickleError,
     dump_pickle,
     load_pickle,
@@ -171,3 +177,57 @@ def test_os_system_global_is_refused_and_runs_nothing(tmp_path):
     with pytest.raises(UnsafePickleError, match=r"os\.system"):
         load_pickle(path)
     assert not marker.exists()
+
+
+# Lists 0..5 (memo 0..5), each holding 30 references to the one before.
+_NESTED_LISTS = b"(lp0\n0" + b"".join(b"(lp%d\n" % k + b"g%d\na" % (k - 1) * 30 + b"0"
+                                        for k in range(1, 6))
+_LIST_OF_RANGE = b"cbuiltins\nlist\n(cbuiltins\nrange\n(I30000000\ntRtR."  # list(range(3e7))
+
+
+@pytest.mark.parametrize(
+    "payload",
+    [
+        _LIST_OF_RANGE,
+        # protocol 2 NEWOBJ: tuple.__new__(tuple, range(30_000_000))
+        b"\x80\x02cbuiltins\ntuple\ncbuiltins\nrange\nJ\x80\xc3\xc9\x01\x85R\x85\x81.",
+        b"cbuiltins\nbytes\n(I10000000000\ntR.",  # bytes(10**10)
+        b"cbuiltins\nlist\n(cbuiltins\nrange\n(L10**20\ntRtR.".replace(b"10**20", b"1" + b"0" * 20),
+        b"cnumpy\nndarray\n((I100000\nI100000\nttR.",  # numpy.ndarray((1e5, 1e5))
+        # numpy.core.multiarray._reconstruct(numpy.ndarray, (10**10,), b"b")
+        b"cnumpy.core.multiarray\n_reconstruct\n(cnumpy\nndarray\n(I10000000000\ntS'b'\ntR.",
+        # str of 30 references to a list of 30 references to ... (5 deep): 24 million "[]"
+        _NESTED_LISTS + b"cbuiltins\nstr\n(g5\ntR.",
+    ],
+)
+def test_a_small_pickle_that_builds_a_huge_object_is_refused_before_it_builds_it(tmp_path,
+                                                                                 payload):
+    path = tmp_path / "bomb.pkl"
+    path.write_bytes(payload)
+    tracemalloc.start()
+    started = time.monotonic()
+    try:
+        with pytest.raises(OversizedPickleError, match=r"bomb\.pkl: a call of \w+ builds"):
+            load_pickle(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert time.monotonic() - started < 1.0 and peak < 2**20
+
+
+def test_a_pickle_larger_than_any_scenario_is_refused_unread(tmp_path, monkeypatch):
+    path = tmp_path / "huge.pkl"
+    dump_pickle({"a": np.zeros(1000)}, path)
+    monkeypatch.setattr(safe_pickle, "MAX_PICKLE_BYTES", 1000)
+    with pytest.raises(OversizedPickleError, match=r"huge\.pkl: \d+ bytes, over the 1000"):
+        load_pickle(path)
+
+
+def test_prepare_counts_a_pickle_bomb_as_a_bad_file_naming_it(tmp_path):
+    root = tmp_path / "sn"
+    root.mkdir()
+    (root / "bomb.pkl").write_bytes(_LIST_OF_RANGE)
+    spec = {"kind": "scenarionet", "root": str(root), "split": None, "stride": 1}
+    result = encode_file(spec, str(root / "bomb.pkl"), None)
+    assert result.frames == [] and result.error.startswith("OversizedPickleError: ")
+    assert "bomb.pkl" in result.error

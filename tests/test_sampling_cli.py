@@ -275,3 +275,56 @@ def test_given_records_are_validated():
         actors_from_records([{**ok, "vx": 10**39}], TINY, "f.jsonl:1")  # float32 tops 3.4e38
     with pytest.raises(ValueError, match=r"^f\.jsonl:1: actors: 50 actors, more than max_actors"):
         actors_from_records([ok] * 50, TINY, "f.jsonl:1")
+
+
+def test_given_actors_are_held_to_the_readers_road_user_limits():
+    """What prepare drops (`frame.drop_beyond_limits`) is refused as given, naming the line."""
+    from scenegen_jax.sampling.export import given_from_lines
+
+    fast = {**_vehicle(20.0, 5.0), "vx": 1e6}
+    huge = _vehicle(-20.0, -15.0, width=31.0, length=35.0)
+    crowd = {"class": "pedestrian", "x": 5.0, "y": 5.0, "width": 40.0, "vx": 0, "vy": 0}
+    lines = [json.dumps({"actors": [_vehicle(20.0, 5.0)]}), json.dumps({"actors": [fast]})]
+    with pytest.raises(ValueError, match=r"^g\.jsonl:2: actors\[0\]\.vx/vy: speed 1e\+06 m/s, "
+                       r"beyond 100 m/s$"):
+        given_from_lines(lines, "g.jsonl", TINY, np.array([[2.0, 4.0]]))
+    with pytest.raises(ValueError, match=r"^f:1: actors\[1\]\.width/length: \(31, 35\) m, "
+                       r"beyond 30 m$"):
+        actors_from_records([_vehicle(20.0, 5.0), huge], TINY, "f:1")
+    with pytest.raises(ValueError, match=r"actors\[0\]\.width/length: \(40, 0\.6\) m"):
+        actors_from_records([crowd], TINY, "f:1")
+    at_limits = [{**_vehicle(20.0, 5.0, width=2.5, length=30.0), "vx": 60.0, "vy": 80.0}]
+    assert int(actors_from_records(at_limits, TINY, "f:1").valid.sum()) == 1
+
+
+def test_a_sample_stopped_before_writing_removes_the_out_folder_it_made(tmp_path, val_cache,
+                                                                       monkeypatch):
+    """SIGINT before the first scene is written: the --out folders this run made are gone;
+    a folder that was there before stays."""
+    import signal
+
+    import scenegen_jax.sampling.batch as batch
+    from scenegen_jax.checkpoint import Checkpointer
+    from scenegen_jax.cli import main
+    from scenegen_jax.signals import Stopped
+    from scenegen_jax.train.loop import save_or_check_config
+
+    workdir = str(tmp_path / "wd")
+    save_or_check_config(workdir, TINY)
+    ckpt = Checkpointer(os.path.join(workdir, "checkpoints"), every=1)
+    ckpt.save(init_state(TINY), force=True)
+    ckpt.close()
+
+    def interrupted(*args, **kwargs):
+        raise Stopped(signal.SIGINT)
+
+    monkeypatch.setattr(batch, "sample_on_cache", interrupted)
+    argv = ["sample", "--workdir", workdir, "--data", val_cache.path, "--num", "1", "--out"]
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    for out in (tmp_path / "new" / "out", mine):
+        with pytest.raises(SystemExit) as exit_info:
+            main([*argv, str(out)])
+        assert exit_info.value.code == 130
+    assert not (tmp_path / "new").exists()  # made by the run: removed, its parent too
+    assert os.listdir(mine) == []  # there before: kept, without the run's empty folders

@@ -250,3 +250,16 @@ def test_sharded_prepare_reads_as_the_whole_cache(tiny_train_cache, data_root, t
     shutil.copytree(other / "shard-00001-of-00002", out / "shard-00001-of-00002")
     with pytest.raises(ValueError, match=r"shard-00001-of-00002/meta.json: field slots differs"):
         load_cache(str(out))
+
+
+def test_a_whole_cache_beside_shards_is_refused_naming_both(tiny_train_cache, tmp_path):
+    """A `prepare --shard` into the folder of a whole cache leaves two caches in one: which
+    one is meant is unknown, so neither is read."""
+    import shutil
+
+    both = tmp_path / "both"
+    shutil.copytree(tiny_train_cache.path, both)
+    shutil.copytree(tiny_train_cache.path, both / "shard-00000-of-00002")
+    with pytest.raises(ValueError, match=rf"^{both}: holds both a whole cache \({both}/meta\.json"
+                       rf"\) and shards \({both}/shard-00000-of-00002, \.\.\.\)"):
+        load_cache(str(both))

@@ -169,3 +169,36 @@ def test_worst_scenes_picks_the_least_likely_actor():
     assert [(i, s) for i, s, *_ in ranked] == [(1, 1), (0, 0)]
     assert ranked[0][2] == pytest.approx((2 + 30 + 1) / 2)
     assert ranked[0][3]["location"] == 30.0
+
+
+def test_a_batch_beyond_the_scenes_is_cut_to_them(tiny_train_cache):
+    """`--batch-size 100000` on a few scenes scores them as a batch of those scenes does,
+    instead of asking the device for a batch of 100,000."""
+    from scenegen_jax.model.network import init_params
+
+    params = init_params(CFG.model, jax.random.key(0))
+    some = range(3)
+    huge = score_cache(params, tiny_train_cache, CFG, batch_size=100_000, progress=False,
+                       workers=2, scenes=some)
+    fits = score_cache(params, tiny_train_cache, CFG, batch_size=6, progress=False, workers=2,
+                       scenes=some)  # 3 scenes per call
+    for k in fits:
+        np.testing.assert_array_equal(huge[k], fits[k])
+
+
+def test_a_batch_beyond_the_free_memory_is_refused_before_scoring(tiny_train_cache,
+                                                                  monkeypatch):
+    from scenegen_jax.eval import nll
+    from scenegen_jax.model.network import init_params
+
+    params = init_params(CFG.model, jax.random.key(0))
+    monkeypatch.setattr(nll, "free_memory_bytes", lambda: 2**20)  # 1 MiB free
+    gathered = []
+    gather = nll.gather_batch
+    monkeypatch.setattr(nll, "gather_batch", lambda *a: gathered.append(a) or gather(*a))
+    with pytest.raises(ValueError, match=r"^batch size 4 \(--batch-size\): 2 concurrent scoring "
+                       r"call\(s\) need about [0-9.]+ GiB, 0\.0 GiB free; use a batch size of "
+                       r"at most about 1$"):
+        score_cache(params, tiny_train_cache, CFG, batch_size=4, progress=False, workers=2,
+                    scenes=range(4))
+    assert len(gathered) == 1  # the shape template only: no scene was scored

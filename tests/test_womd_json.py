@@ -480,3 +480,52 @@ def test_every_source_is_held_to_the_road_user_limits(tmp_path):
     (tmp_path / "limits.json").write_text(json.dumps(data))
     with pytest.raises(ValueError, match=r"limits\.json: scene limits/0: ego velocity: speed 150"):
         read_file(spec, str(tmp_path / "limits.json"))
+
+
+def _set_xy(points, value: float) -> None:
+    for p in points:
+        p["x"] = p["y"] = value
+
+
+def test_world_coordinates_beyond_range_are_named_or_counted(tmp_path):
+    """Coordinates beyond `frame.MAX_WORLD_M` are damaged, like NaN: all of them at 1e300
+    gave scenes of actors at the ego's position. A map feature or the ego there is a file
+    error naming the field; another object there is a counted drop; 1e308 warns nothing."""
+    import warnings
+
+    from scenegen_jax.data.sources import read_file
+
+    spec = source_spec("womd_json", str(tmp_path), None, 10)
+    path = str(tmp_path / "far.json")
+
+    def read(data):
+        with open(path, "w") as f:
+            json.dump(data, f)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            return read_file(spec, path)
+
+    data = _scene(False, sdc=0)
+    for o in data["objects"]:
+        _set_xy(o["position"], 1e300)
+        _set_xy([o["goalPosition"]], 1e300)
+    for road in data["roads"]:
+        _set_xy(road["geometry"], 1e300)
+    with pytest.raises(ValueError, match=r"far\.json: roads\[0\]\.geometry: a coordinate "
+                       r"beyond 1e\+07 m"):
+        read(data)
+    data = _scene(False, sdc=0)
+    _set_xy(data["objects"][0]["position"], 1e300)
+    with pytest.raises(ValueError, match=r"far\.json: objects \(the SDC, id 0\)\.position: "
+                       r"beyond 1e\+07 m at step 0"):
+        read(data)
+    data = _scene(False, sdc=0)
+    _set_xy(data["objects"][1]["position"], 1e308)
+    _set_xy(data["objects"][2]["velocity"], 1e308)
+    frames, drops = read(data)
+    assert (drops["invalid:world_position"], drops["invalid:speed"]) == (3, 3)  # per frame
+    assert [len(f.cls) for f in frames] == [2, 2, 1]  # of 4, 4, 3 besides the ego
+    _set_xy(data["objects"][0]["velocity"], 1e308)
+    with pytest.raises(ValueError, match=r"far\.json: scene far/0: ego velocity: speed "
+                       r"1\.414e\+308 m/s"):
+        read(data)

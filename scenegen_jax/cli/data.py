@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import sys
 
@@ -53,6 +54,13 @@ def _numbered(path: str, n: int, index: int) -> str:
     return f"{root}_{index:05d}{ext or '.png'}"
 
 
+def rotation_rad(degrees: float) -> float:
+    """`--rotate` degrees as radians in [-pi, pi]: reduced modulo 360 first (exactly, for any
+    finite angle), so an angle like 1e300 degrees turns the scene rather than becoming a
+    float32 angle whose sine and cosine are NaN."""
+    return math.radians(math.remainder(degrees, 360.0))
+
+
 def cmd_render(args) -> None:
     import numpy as np
 
@@ -66,9 +74,9 @@ def cmd_render(args) -> None:
     cache.check_config(cfg)
     indices = args.index if args.index else [0]
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    theta = rotation_rad(args.rotate)
     for n, index in enumerate(indices):
         canvas, actors, ego = cached_scene(cache, index, cfg)
-        theta = np.deg2rad(args.rotate)
         map_raster, scene, _ = scene_from_cached(canvas, actors, ego, theta, cfg.grid)
         out = _image_path(args.out) if len(indices) == 1 else _numbered(args.out, n, index)
         render_scene(

@@ -28,6 +28,17 @@ from scenegen_jax.files import written_whole
 MAX_PROPOSALS = 1000
 
 
+def check_temperature(value: float | None) -> None:
+    """Refuses a `--location-temperature` below `SamplerOptions`' least before any work
+    (None: not given)."""
+    from scenegen_jax.sampling.rollout import MIN_LOCATION_TEMPERATURE
+
+    if value is not None and value < MIN_LOCATION_TEMPERATURE:
+        raise ValueError(f"--location-temperature {value:g}: must be at least "
+                         f"{MIN_LOCATION_TEMPERATURE:g} (below it the draw is already the "
+                         "likeliest bin, and the divided logits leave float32's range)")
+
+
 def parse_caps(pairs, cfg: Config):
     """Per-class caps int32 [3] from `--cap CLASS=N ...` (default: max_actors each)."""
     import numpy as np
@@ -85,11 +96,43 @@ def conditioning(args, cfg: Config, cache) -> tuple[list[int], list]:
     return indices, given
 
 
+def missing_folders(path: str) -> list[str]:
+    """The folders of `path` (itself, then its parents) that do not exist yet: the ones
+    `os.makedirs(path)` makes, innermost first."""
+    out, path = [], os.path.abspath(path)
+    while not os.path.lexists(path) and os.path.dirname(path) != path:
+        out.append(path)
+        path = os.path.dirname(path)
+    return out
+
+
+def remove_empty_folders(folders: list[str]) -> None:
+    """Removes each of `folders` (innermost first) that is empty; keeps the others."""
+    for folder in folders:
+        try:
+            os.rmdir(folder)
+        except OSError:  # not empty (something was written), or already gone
+            continue
+
+
 def cmd_sample(args) -> None:
     """Samples scenes on the maps and egos of cache scenes; writes JSON lines, ScenarioNet
     pickles, PNGs and (with --heatmaps) per-step location heatmaps. With --distributed each
     process samples its share of the scenes and writes their files; process 0 then joins
-    the JSON lines and indexes the ScenarioNet folder."""
+    the JSON lines and indexes the ScenarioNet folder. A run that stops (an error, SIGINT,
+    SIGTERM) removes the folders it made that are still empty, --out included."""
+    check_temperature(args.location_temperature)
+    made = missing_folders(args.out)
+    check_output("--out", args.out, folder=True)  # found now, not after the sampling
+    try:
+        sample_into(args, made)
+    except BaseException:
+        remove_empty_folders(made)
+        raise
+
+
+def sample_into(args, made: list[str]) -> None:
+    """`cmd_sample` into its checked --out; the folders it makes are put first in `made`."""
     import jax
 
     from scenegen_jax.backend import is_main_process, process_share, sync_processes
@@ -99,7 +142,6 @@ def cmd_sample(args) -> None:
     from scenegen_jax.sampling.batch import sample_on_cache
     from scenegen_jax.scene import CLASS_NAMES
 
-    check_output("--out", args.out, folder=True)  # found now, not after the sampling
     start_distributed(args)
     cfg, params, _, sampler = load_model(args)
     caps = parse_caps(args.cap, cfg)  # checked before any output is written
@@ -109,6 +151,7 @@ def cmd_sample(args) -> None:
     steps = HEATMAP_STEPS if args.heatmaps else ()
     out = os.path.abspath(args.out)
     for sub_dir in ("png", "scenarionet") + (("heatmaps",) if steps else ()):
+        made[:0] = missing_folders(os.path.join(out, sub_dir))
         os.makedirs(os.path.join(out, sub_dir), exist_ok=True)
     options = SamplerOptions(proposals=args.proposals, heatmap_steps=steps,
                              location_temperature=location_temperature(args, sampler))

@@ -20,6 +20,7 @@ from scenegen_jax.cli.common import (
     seed_int,
     start_distributed,
 )
+from scenegen_jax.cli.sample import check_temperature
 from scenegen_jax.files import written_whole
 
 
@@ -137,6 +138,7 @@ def cmd_evaluate(args) -> None:
     from scenegen_jax.eval.evaluate import evaluate, format_table
     from scenegen_jax.sampling import SamplerOptions
 
+    check_temperature(args.location_temperature)
     check_output("--out", args.out)  # found now, not after the sampling
     cfg, params, step, sampler = load_model(args)
     cache = load_union(args.data, cfg)

@@ -115,14 +115,25 @@ _UNREADABLE_ARRAY = (
 )
 
 
+def shard_folders(path: str) -> list[str]:
+    """Names of the `prepare --shard` folders in `path`, sorted (none if it is no folder)."""
+    if not os.path.isdir(path):
+        return []
+    return sorted(n for n in os.listdir(path) if SHARD_RE.fullmatch(n))
+
+
 def load_cache(path: str) -> Cache:
     """Opens a cache directory written by `write_cache` or `prepare` (sharded or not);
     errors name the file and field."""
     meta_path = os.path.join(path, "meta.json")
+    shards = shard_folders(path)
     if not os.path.isfile(meta_path):
-        if os.path.isdir(path) and any(SHARD_RE.fullmatch(n) for n in os.listdir(path)):
+        if shards:
             return _load_sharded(path)
         raise FileNotFoundError(f"{meta_path}: not a scenegen cache (run `scenegen prepare`)")
+    if shards:  # two caches in one folder: which one is meant is unknown
+        raise ValueError(f"{path}: holds both a whole cache ({meta_path}) and shards "
+                         f"({os.path.join(path, shards[0])}, ...); move one of them away")
     meta = read_json(meta_path)
     if not isinstance(meta, dict) or not isinstance(meta.get("scene_ids"), list):
         raise ValueError(f"{meta_path}: field scene_ids: missing or not a list")

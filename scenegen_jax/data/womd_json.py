@@ -50,6 +50,7 @@ from scenegen_jax.data.womd_scene import (
 )
 from scenegen_jax.files import files_under
 from scenegen_jax.frame import Frame
+from scenegen_jax.frame import speed as frame_speed
 from scenegen_jax.jsonfile import read_json
 
 
@@ -107,7 +108,7 @@ def _scalar(obj: Mapping, key: str, source: str, field: str) -> float:
 
 def heading_unit_is_degrees(heading: np.ndarray, velocity: np.ndarray, valid: np.ndarray) -> bool:
     """Whether headings [O, T] are degrees, from their agreement with velocity directions."""
-    speed = np.linalg.norm(velocity, axis=-1)
+    speed = frame_speed(velocity)  # inf, not an overflow warning, for speeds near 1e308
     moving = valid & (speed > MOVING_MPS) & np.isfinite(heading)
     if moving.sum() >= 5:
         direction = np.arctan2(velocity[..., 1], velocity[..., 0])[moving]

@@ -27,7 +27,7 @@ from scenegen_jax.data.surface import (
     outline_lanes,
     stacked_normals,
 )
-from scenegen_jax.frame import Frame
+from scenegen_jax.frame import MAX_WORLD_M, Frame, within_world
 from scenegen_jax.scene import BICYCLIST, PEDESTRIAN, VEHICLE, wrap_angle
 from scenegen_jax.vector_map import (
     ROAD_EDGE,
@@ -155,6 +155,8 @@ def build_map(features: Sequence[MapFeature], source: str
             continue
         if not np.all(np.isfinite(feature.points)):
             raise field_error(source, feature.field, "NaN or inf coordinate")
+        if not np.all(within_world(feature.points)):
+            raise field_error(source, feature.field, f"a coordinate beyond {MAX_WORLD_M:g} m")
         points = feature.points[distinct_points(feature.points, 1e-6)]
         if len(points) < (3 if kind in ("crosswalk", "driveway") else 2):
             dropped[f"map:degenerate_{kind}"] += 1
@@ -189,15 +191,18 @@ def build_map(features: Sequence[MapFeature], source: str
 
 
 def velocity_mismatch(tracks: Tracks) -> bool:
-    """Whether the file's velocities disagree with finite differences of the positions."""
-    pos, valid = tracks.position, tracks.valid
+    """Whether the file's velocities disagree with finite differences of the positions (of
+    the steps whose position is a place: `frame.within_world`)."""
+    pos, valid = tracks.position, tracks.valid & within_world(tracks.position)
     both = valid[:, 2:] & valid[:, :-2]
     fd = (pos[:, 2:] - pos[:, :-2]) / (2 * STEP_S)
     v = tracks.velocity[:, 1:-1]
     moving = both & (np.linalg.norm(fd, axis=-1) > MOVING_MPS)
     if moving.sum() < 10:
         return False
-    rel = np.linalg.norm(v[moving] - fd[moving], axis=-1) / np.linalg.norm(fd[moving], axis=-1)
+    with np.errstate(over="ignore", invalid="ignore"):  # velocities near 1e308: inf, not warned
+        rel = np.linalg.norm(v[moving] - fd[moving], axis=-1) / np.linalg.norm(fd[moving],
+                                                                             axis=-1)
     return bool(np.median(rel) > 0.3)
 
 
@@ -208,10 +213,20 @@ def _ego_state_checked(scenario: ParsedScenario, t: int, source: str) -> None:
     for name in ("position", "velocity", "heading"):
         if not np.all(np.isfinite(getattr(tracks, name)[sdc, t])):
             raise field_error(source, f"{sdc_field}.{name}", f"NaN or inf at step {t}")
+    if not within_world(tracks.position[sdc, t]):
+        raise field_error(source, f"{sdc_field}.position",
+                          f"beyond {MAX_WORLD_M:g} m at step {t}: {tracks.position[sdc, t]}")
     size = tracks.size[sdc, t]
     if not (np.all(np.isfinite(size)) and np.all(size > 0)):
         raise field_error(source, f"{sdc_field}.width/length",
                    f"not finite and positive at step {t}: {size}")
+
+
+def _rotated(velocity: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """velocity [..., 2] m/s @ rotation.T; a speed beyond float64 becomes inf without a
+    warning, for the speed limit to drop (`frame.drop_beyond_limits`)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        return velocity @ rotation.T
 
 
 def scenario_frames(
@@ -222,8 +237,10 @@ def scenario_frames(
     at all raises ValueError).
 
     Rows valid at a frame's step are either actors of the frame or counted drops (NaN/inf,
-    non-positive box sizes of vehicles and cyclists). NaN/inf in the ego's state at a
-    frame's step, or an ego box size there that is not positive, raise ValueError.
+    positions beyond `frame.MAX_WORLD_M`, non-positive box sizes of vehicles and cyclists).
+    NaN/inf or a position beyond `frame.MAX_WORLD_M` in the ego's state at a frame's step,
+    or an ego box size there that is not positive, raise ValueError; so do map features
+    beyond it (`build_map`).
     """
     tracks, sdc = scenario.tracks, scenario.sdc
     world_map, map_dropped = build_map(scenario.features, source)
@@ -248,9 +265,11 @@ def scenario_frames(
             & np.isfinite(tracks.heading[rows, t])
             & np.all(np.isfinite(size), axis=1)
         )
-        dropped["invalid:size"] += int(np.sum(bad_size & finite))
+        far = finite & ~within_world(tracks.position[rows, t])
+        dropped["invalid:size"] += int(np.sum(bad_size & finite & ~far))
         dropped["invalid:nan"] += int(np.sum(~finite))
-        rows = rows[finite & ~bad_size]
+        dropped["invalid:world_position"] += int(np.sum(far))
+        rows = rows[finite & ~bad_size & ~far]
         x0, y0 = tracks.position[sdc, t]
         h0 = float(tracks.heading[sdc, t])
         ego_from_world = rotation_matrix(-h0)
@@ -264,9 +283,9 @@ def scenario_frames(
                 position=(tracks.position[rows, t] - (x0, y0)) @ ego_from_world.T,
                 size=tracks.size[rows, t].astype(np.float64),
                 heading=wrap_angle(tracks.heading[rows, t] - h0),
-                velocity=tracks.velocity[rows, t] @ ego_from_world.T,
+                velocity=_rotated(tracks.velocity[rows, t], ego_from_world),
                 track_id=np.asarray([tracks.ids[r] for r in rows], dtype=str),
-                ego_velocity=ego_from_world @ tracks.velocity[sdc, t],
+                ego_velocity=_rotated(tracks.velocity[sdc, t], ego_from_world),
                 ego_size=tracks.size[sdc, t].astype(np.float64),
                 map=vmap,
                 city_from_ego=se2_pose(x0, y0, h0),

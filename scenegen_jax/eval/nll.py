@@ -15,6 +15,7 @@ from tqdm import tqdm
 from scenegen_jax.backend import (
     concurrent_map,
     default_workers,
+    free_memory_bytes,
     make_mesh,
     scoring_compiler_options,
 )
@@ -51,6 +52,45 @@ def _jitted_scorer(cfg: ModelConfig, mesh):
     )
 
 
+def _abstract(tree) -> tuple:
+    """A hashable (treedef, shapes and dtypes) of a PyTree of arrays."""
+    leaves, treedef = jax.tree.flatten(tree)
+    return treedef, tuple(jax.ShapeDtypeStruct(np.shape(x), x.dtype) for x in leaves)
+
+
+@functools.lru_cache(maxsize=8)
+def _compiled_scorer(cfg: ModelConfig, mesh, params_spec: tuple, batch_spec: tuple):
+    """`_jitted_scorer` compiled for these shapes: its memory is known before it runs
+    (`check_call_memory`), and the calls run this program (a jit call would compile again)."""
+    params, batch = (jax.tree.unflatten(*spec) for spec in (params_spec, batch_spec))
+    return _jitted_scorer(cfg, mesh).lower(params, batch).compile()
+
+
+def call_scenes(batch_size: int, workers: int, devices: int, scenes: int) -> int:
+    """Scenes per call: `batch_size` per device split over `workers` concurrent calls, on
+    every device, but no more calls' worth than `scenes` needs (a multiple of `devices`):
+    a batch beyond the scenes would only pad them."""
+    per_call = max(batch_size // workers, 1) * devices
+    return min(per_call, -(-scenes // devices) * devices)
+
+
+def check_call_memory(compiled, calls: int, batch_size: int, free: int) -> None:
+    """Raises ValueError where `calls` concurrent runs of the compiled scorer need more than
+    `free` bytes (`memory_analysis`: its temporaries, arguments and outputs on a device);
+    no check where the backend does not say."""
+    try:
+        m = compiled.memory_analysis()
+        need = calls * (m.temp_size_in_bytes + m.argument_size_in_bytes
+                        + m.output_size_in_bytes)
+    except (AttributeError, NotImplementedError, jax.errors.JaxRuntimeError):
+        return
+    if need > free:
+        fits = max(int(batch_size * free / need), 1)
+        raise ValueError(f"batch size {batch_size} (--batch-size): {calls} concurrent scoring "
+                         f"call(s) need about {need / 2**30:.1f} GiB, {free / 2**30:.1f} GiB "
+                         f"free; use a batch size of at most about {fits}")
+
+
 def score_cache(params, cache: Cache, cfg: Config, batch_size: int = 8, progress: bool = True,
                 workers: int | None = None, scenes: range | None = None):
     """Scores every scene of a cache (or the `scenes` range of them), on every local device.
@@ -59,7 +99,9 @@ def score_cache(params, cache: Cache, cfg: Config, batch_size: int = 8, progress
     on equal parts of it (`backend.concurrent_map`; default one per core on CPU, 1 on
     accelerators), each call's scenes split over the devices. Every scene's scores are its
     own; a device computes the same groups of scenes whatever the device count, so the
-    scores do not change with it, bit for bit.
+    scores do not change with it, bit for bit. A batch larger than the scenes is cut to
+    them (`call_scenes`), and one whose concurrent calls would need more memory than the
+    device has free is refused before any scene is scored (`check_call_memory`).
 
     Returns:
       dict with per-step arrays over the scenes: term -> [S, T] NLL (nats), "step_valid"
@@ -76,9 +118,13 @@ def score_cache(params, cache: Cache, cfg: Config, batch_size: int = 8, progress
         raise ValueError(f"batch_size and workers must be >= 1, got {batch_size} and {workers}")
     mesh = make_mesh(jax.local_devices())  # with several processes: this one's devices
     workers = default_workers() if workers is None else workers
-    per_call = max(batch_size // workers, 1) * mesh.size
-    fn = _jitted_scorer(cfg.model, mesh)  # one program per model, whatever the training settings
+    per_call = call_scenes(batch_size, workers, mesh.size, len(scenes))
     params = jax.device_put(params, NamedSharding(mesh, P()))
+    template = gather_batch(cache, np.full(per_call, scenes.start), cfg.grid)
+    # One program per model, whatever the training settings.
+    fn = _compiled_scorer(cfg.model, mesh, _abstract(params), _abstract(template))
+    starts = range(scenes.start, scenes.stop, per_call)
+    check_call_memory(fn, min(workers, len(starts)), batch_size, free_memory_bytes())
     n = scenes.stop
 
     def call(start):
@@ -90,7 +136,6 @@ def score_cache(params, cache: Cache, cfg: Config, batch_size: int = 8, progress
         out = jax.device_get(fn(params, to_device(host, NamedSharding(mesh, P("data")))))
         return {k: v[real] for k, v in out.items()}
 
-    starts = range(scenes.start, n, per_call)
     chunks = list(tqdm(concurrent_map(call, starts, workers), total=len(starts), desc="score",
                        unit="call", file=sys.stderr, disable=not progress))
     return {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}

@@ -18,7 +18,14 @@ from typing import Any
 import numpy as np
 
 from scenegen_jax.config import Config
-from scenegen_jax.frame import Frame
+from scenegen_jax.frame import (
+    MAX_SIZE_M,
+    MAX_SPEED_MPS,
+    Frame,
+    size_beyond_limits,
+    speed,
+    speed_beyond_limits,
+)
 from scenegen_jax.geometry import boxes_overlap
 from scenegen_jax.jsonfile import parse_json
 from scenegen_jax.scene import (
@@ -54,6 +61,19 @@ def actor_records(actors: Actors) -> list[dict]:
     return out
 
 
+def road_user_problem(values: Mapping[str, float]) -> str | None:
+    """Why an actor record's numbers (`RECORD_FIELDS`) are no road user, as "FIELDS: reason":
+    beyond the limits every reader drops actors at (`frame.MAX_SIZE_M`,
+    `frame.MAX_SPEED_MPS`); None if they are one."""
+    box = np.array([values["width"], values["length"]])
+    if size_beyond_limits(box):
+        return f"width/length: ({box[0]:g}, {box[1]:g}) m, beyond {MAX_SIZE_M:g} m"
+    velocity = np.array([values["vx"], values["vy"]])
+    if speed_beyond_limits(velocity):
+        return f"vx/vy: speed {float(speed(velocity)):.4g} m/s, beyond {MAX_SPEED_MPS:g} m/s"
+    return None
+
+
 def actors_from_records(
     records: Sequence[Mapping[str, Any]],
     cfg: Config,
@@ -73,7 +93,8 @@ def actors_from_records(
 
     Raises ValueError naming `where` and the field for unknown classes, missing values or
     values that are not finite numbers (true/false and strings are not numbers),
-    non-positive box sizes, actors outside the region, more than N actors, and (unless
+    non-positive box sizes, boxes or speeds beyond the readers' road-user limits
+    (`road_user_problem`), actors outside the region, more than N actors, and (unless
     `allow_overlap`) overlapping boxes.
     """
     n = cfg.grid.max_actors
@@ -106,6 +127,8 @@ def actors_from_records(
             values[key] = _number(value, f"{field}.{key}")
         if not ped and (values["width"] <= 0 or values["length"] <= 0):
             raise ValueError(f"{field}.width/length: box sizes must be positive")
+        if problem := road_user_problem(values):
+            raise ValueError(f"{field}.{problem}")
         if not in_region(np.array([values["x"], values["y"]]), cfg.grid):
             raise ValueError(f"{field}.x/y: ({values['x']:g}, {values['y']:g}) m lies outside "
                              f"the {cfg.grid.region_m:g} m region around the ego")

@@ -82,6 +82,11 @@ DEFAULT_CANDIDATES = 8
 DEFAULT_ROUNDS = 4
 # The steps whose location distributions the paper's Figure 7 shows.
 HEATMAP_STEPS = (0, 5, 10, 15, 20)
+# The least location temperature: at 1e-3 a logit gap of 0.01 already weighs e^10 : 1, so
+# the draw is the likeliest allowed bin; far below it the logits divided by the temperature
+# leave float32's range (1e-300 is 0 in float32: every bin NaN, every scene empty).
+MIN_LOCATION_TEMPERATURE = 1e-3
+
 
 @dataclasses.dataclass(frozen=True)
 class SamplerOptions:
@@ -116,8 +121,11 @@ class SamplerOptions:
                 raise ValueError(f"sampler option {name} must be an integer >= 1, got {v!r}")
             object.__setattr__(self, name, None if v is None else int(v))
         t = self.location_temperature
-        if isinstance(t, bool) or not isinstance(t, numbers.Real) or not 0 < t < float("inf"):
-            raise ValueError(f"sampler option location_temperature must be a number > 0, "
+        if (isinstance(t, bool) or not isinstance(t, numbers.Real)
+                or not MIN_LOCATION_TEMPERATURE <= t < float("inf")):
+            raise ValueError(f"sampler option location_temperature must be a number >= "
+                             f"{MIN_LOCATION_TEMPERATURE:g} (below it the draw is already the "
+                             f"likeliest bin, and the divided logits leave float32's range), "
                              f"got {t!r}")
         object.__setattr__(self, "location_temperature", float(t))
         steps = self.heatmap_steps
