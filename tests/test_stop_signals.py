@@ -86,3 +86,19 @@ def test_a_swallowed_stop_is_raised_at_the_next_check(monkeypatch):
         signals.raise_pending()
     assert e.value.exit_status == 143 and isinstance(e.value, KeyboardInterrupt)
     signals.raise_pending()  # nothing pending any more
+
+
+def test_a_stop_inside_a_garbage_collector_callback_is_delivered_after_it(monkeypatch):
+    """Inside `_xla_gc_callback` (where Python would print and drop the exception) the
+    handler does not raise; the signal comes again a moment later and raises there."""
+    monkeypatch.setattr(signals, "_received", [])
+    previous = signals.install()
+    try:
+        def _xla_gc_callback():  # the name Python's dropping callback has in JAX
+            signals._handler(signal.SIGINT, sys._getframe())
+
+        _xla_gc_callback()  # returns: nothing raised inside
+        with pytest.raises(signals.Stopped):
+            time.sleep(5)  # the redelivered signal interrupts this
+    finally:
+        signals.restore(previous)

@@ -81,6 +81,25 @@ def main(argv: list[str] | None = None) -> None:
         except (FileNotFoundError, ValueError) as e:  # a bad SCENEGEN_MALLOC: exit 2
             print(f"scenegen: {e}", file=sys.stderr)
             raise SystemExit(2) from e
+    previous = signals.install()  # first: a Ctrl-C during the imports below stops cleanly
+    try:
+        _run(argv)
+    except KeyboardInterrupt as e:  # `signals.Stopped`: Ctrl-C or SIGTERM, at any moment
+        raise _stopped(e) from None
+    finally:
+        if argv is None:  # the command's work is done, its outputs whole
+            signals.ignore_while_exiting()
+        else:  # called inside another program (tests, scripts): its handlers back
+            signals.restore(previous)
+
+
+def _stopped(e: KeyboardInterrupt) -> SystemExit:
+    """The exit of a command stopped by Ctrl-C or SIGTERM (`signals.Stopped`)."""
+    logging.getLogger("scenegen").error("interrupted (%s)", e or "SIGINT")
+    return SystemExit(getattr(e, "exit_status", 130))
+
+
+def _run(argv: list[str] | None) -> None:
     args = build_parser().parse_args(argv)
     from scenegen_jax.cli import data, model, sample, score
 
@@ -94,15 +113,11 @@ def main(argv: list[str] | None = None) -> None:
     )
     for noisy in ("jax", "absl", "matplotlib", "orbax"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
-    signals.install()
     try:
         start_jax(args.func in computes and not getattr(args, "distributed", False))
         if args.func in compiles:
             enable_compile_cache()
         args.func(args)
-    except KeyboardInterrupt as e:  # `signals.Stopped` by Ctrl-C or SIGTERM
-        logging.getLogger("scenegen").error("interrupted (%s)", e or "SIGINT")
-        raise SystemExit(getattr(e, "exit_status", 130)) from None
     except (OSError, ValueError, IndexError) as e:
         # Bad input (a file, a field, a flag): one line naming it, exit 2; -v adds the
         # traceback. Every reader raises these with the file and the field in the message.
