@@ -11,6 +11,7 @@ import sys
 import time
 
 import pytest
+from processes import alive, children
 
 from scenegen_jax import signals
 from scenegen_jax.config import get_config
@@ -30,22 +31,6 @@ def test_a_second_writer_of_a_cache_is_refused_naming_the_first(tmp_path):
         pass
 
 
-def _children(pid: int) -> set[int]:
-    out = set()
-    for task in os.listdir(f"/proc/{pid}/task"):
-        with open(f"/proc/{pid}/task/{task}/children") as f:
-            out.update(int(c) for c in f.read().split())
-    return out
-
-
-def _alive(pid: int) -> bool:
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().split(")")[-1].split()[0] != "Z"
-    except FileNotFoundError:
-        return False
-
-
 @pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="reads /proc")
 def test_sigterm_to_prepare_alone_removes_its_outputs_and_ends_its_workers(tmp_path, data_root):
     """SIGTERM to the parent only (not its process group), while its two workers read."""
@@ -58,22 +43,22 @@ def test_sigterm_to_prepare_alone_removes_its_outputs_and_ends_its_workers(tmp_p
     workers: set[int] = set()
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and proc.poll() is None:
-        workers |= _children(proc.pid)
+        workers |= children(proc.pid)
         if len(workers) >= 2 and out.is_dir() and any(".tmp" in n for n in os.listdir(out)):
             break
         time.sleep(0.2)
     assert proc.poll() is None, proc.communicate()
     time.sleep(1.0)
-    workers |= _children(proc.pid)
+    workers |= children(proc.pid)
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 128 + signal.SIGTERM, err
     assert "Traceback" not in err and "interrupted (SIGTERM)" in err
     assert sorted(os.listdir(out)) == []  # no maps.npy.<pid>.tmp, no .lock, no cache
     deadline = time.monotonic() + 60
-    while any(_alive(w) for w in workers) and time.monotonic() < deadline:
+    while any(alive(w) for w in workers) and time.monotonic() < deadline:
         time.sleep(0.5)
-    assert not [w for w in workers if _alive(w)]
+    assert not [w for w in workers if alive(w)]
 
 
 def test_a_swallowed_stop_is_raised_at_the_next_check(monkeypatch):

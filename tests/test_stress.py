@@ -20,6 +20,7 @@ import sys
 import time
 
 import pytest
+from processes import alive, children
 from small import metrics_rows, train_cmd
 
 from scenegen_jax.data.cache import load_cache
@@ -52,30 +53,11 @@ def _command(name: str, paths: dict, out: str) -> list[str]:
                 "--out", os.path.join(out, "samples"))
 
 
-def _children(pid: int) -> set[int]:
-    out = set()
-    try:
-        for task in os.listdir(f"/proc/{pid}/task"):
-            with open(f"/proc/{pid}/task/{task}/children") as f:
-                out.update(int(c) for c in f.read().split())
-    except (FileNotFoundError, ProcessLookupError):
-        pass
-    return out
-
-
-def _alive(pid: int) -> bool:
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().split(")")[-1].split()[0] != "Z"
-    except FileNotFoundError:
-        return False
-
-
 def _wait_gone(pids: set[int], seconds: float = 60.0) -> list[int]:
     deadline = time.monotonic() + seconds
-    while time.monotonic() < deadline and any(_alive(p) for p in pids):
+    while time.monotonic() < deadline and any(alive(p) for p in pids):
         time.sleep(0.3)
-    return [p for p in pids if _alive(p)]
+    return [p for p in pids if alive(p)]
 
 
 def _rows(path: str) -> list[dict]:
@@ -149,14 +131,14 @@ def test_a_stop_at_a_random_moment_leaves_nothing_half_done(seed, paths, tmp_pat
         os.makedirs(out)
     proc = subprocess.Popen(_command(name, paths, out), env=ENV, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, start_new_session=True)
-    children: set[int] = set()
+    watched: set[int] = set()
     deadline = time.monotonic() + delay
     while time.monotonic() < deadline and proc.poll() is None:
-        children |= _children(proc.pid)
+        watched |= children(proc.pid)
         time.sleep(0.05)
     case = f"seed {seed}: {stop.name} to {name} after {delay:.1f} s"
     if proc.poll() is None:
-        children |= _children(proc.pid)
+        watched |= children(proc.pid)
         if stop == signal.SIGINT:
             os.killpg(proc.pid, stop)  # Ctrl-C reaches the whole group
         else:
@@ -167,7 +149,7 @@ def test_a_stop_at_a_random_moment_leaves_nothing_half_done(seed, paths, tmp_pat
     if stop != signal.SIGKILL:
         assert "Traceback" not in err, (case, err)
         assert not _temporaries(out), case  # SIGKILL alone leaves its temporary files
-    assert not _wait_gone(children), case
+    assert not _wait_gone(watched), case
     if proc.returncode == 0:
         _check_finished(name, out, paths)
         return
