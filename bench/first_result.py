@@ -76,7 +76,6 @@ def export_model(config: str, grid: int, model: str) -> None:
 def ours(kind: str, config: str, grid: int, model: str | None) -> dict:
     os.environ["JAX_ENABLE_COMPILATION_CACHE"] = "false"
     import jax
-    import numpy as np
 
     jax.config.update("jax_enable_compilation_cache", False)
     from synthetic import synthetic_batch
@@ -119,16 +118,11 @@ def ours(kind: str, config: str, grid: int, model: str | None) -> dict:
         jax.block_until_ready(list(concurrent_map(lambda x: score(params, x), parts, workers)))
         out.update(batch=b, workers=workers)
     else:
-        from scenegen_jax.raster.transform import crop_map
         from scenegen_jax.sampling import sample_scenes
 
         b = 1 if cfg.name == "paper" else BATCH
         host = synthetic_batch(cfg, b, 0, seed=2)
-        # Maps cropped one at a time, unrotated, as `scenegen sample` does (`sample_on_cache`).
-        crop = jax.jit(crop_map, static_argnums=2)
-        maps = np.stack([np.asarray(crop(jax.numpy.asarray(c), 0.0, cfg.grid))
-                         for c in host.canvas])
-        s = sample_scenes(jax.random.key(0), params, cfg, maps, host.ego)
+        s = sample_scenes(jax.random.key(0), params, cfg, host.maps, host.ego)
         jax.block_until_ready(s.actors.valid)
         out["batch"] = b
     out["first_result_s"] = process_age_s()

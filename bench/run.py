@@ -60,6 +60,8 @@ import time
 HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(HERE)
 TORCH_REF = os.path.normpath(os.path.join(REPO, "..", "shared", "bench", "torch_ref"))
+WOMD_JSON = os.path.normpath(os.path.join(REPO, "..", "shared", "data", "womd_mini",
+                                          "gpudrive_json"))
 TORCH_PY = os.path.join(HERE, ".venv-torch", "bin", "python")
 TORCH_VERSION = "2.13.0"
 MAP_CHANNELS = 11  # lanes 9 + drivable 1 + crosswalks 1
@@ -201,9 +203,9 @@ def run_case(args) -> dict:
     out = {"what": args.kind, "ours": True, "config": cfg.name, "grid": cfg.grid.grid_size,
            "hidden": cfg.model.hidden, "batch": args.batch, "map_ch": len(cfg.grid.map_channels),
            "allocator": active()}
-    if args.kind != "sample" and backend.compiled_step_loop(args.kind == "train"):
+    if args.kind in ("train", "score") and backend.compiled_step_loop(args.kind == "train"):
         out.update(step_loop="compiled", step_loop_unroll=backend.STEP_LOOP_UNROLL)
-    elif args.kind != "sample":
+    elif args.kind in ("train", "score"):
         out["step_loop"] = "unrolled"
     state = init_state(cfg)
     if args.kind == "train":
@@ -243,16 +245,52 @@ def run_case(args) -> dict:
         out["scenes_per_s"] = args.batch / out["median_s"]
         flops = paper_flops(cfg.grid.grid_size, args.steps, c_in, cfg.model.hidden)[0]
         out["GFLOP"] = flops * args.batch / 1e9
+    elif args.kind == "raster":
+        out.update(raster_case(cfg, args))
     else:
         out.update(sample_case(cfg, state.params, args))
         out["GFLOP"] = step_flops(cfg.grid.grid_size, c_in, cfg.model.hidden) * args.batch / 1e9
         out["median_s_per_step"] = out["per_scene_step_ms"] * args.batch / 1e3
         out["GFLOPs_per_s"] = out["GFLOP"] / out["median_s_per_step"]
-    if args.kind != "sample":
+    if args.kind not in ("sample", "raster"):
         out["GFLOPs_per_s"] = out["GFLOP"] / out["median_s"]
     out["peak_rss_GiB"] = round(peak_rss_gib(), 2)
     out.update(device_fields())
     return out
+
+
+def raster_case(cfg, args) -> dict:
+    """The maps of a training batch drawn from real vector maps (womd_mini val, GPUDrive JSON:
+    the densest maps we have) at random rotations: the host's part (`map_primitives`, per
+    scene) and the device's (`rasterise_batch`), timed apart; the train step of the same
+    batch is the `train` row of the same config, grid and B."""
+    import collections
+    import itertools
+
+    import numpy as np
+
+    from scenegen_jax.data.sources import read_frames, source_spec
+    from scenegen_jax.raster.jax_map import rasterise_batch
+    from scenegen_jax.raster.primitives import map_primitives, stack_primitives
+
+    spec = source_spec("womd_json", WOMD_JSON, "val", 10)
+    frames = read_frames(spec, collections.Counter())
+    maps = [f.map for f in itertools.islice(frames, args.batch)]
+    size, m = cfg.grid.grid_size, cfg.grid.m_per_px
+    thetas = np.random.default_rng(0).uniform(0, 2 * np.pi, len(maps)).astype(np.float32)
+
+    def host():
+        return stack_primitives([map_primitives(v, size, m) for v in maps])
+
+    prims = host()
+    host_t = timed(host, args.runs)
+    device_t = timed(lambda: rasterise_batch(prims, thetas, size, m, cfg.grid.map_channels),
+                     args.runs)
+    return {"source": "womd_mini val (GPUDrive JSON)", "steps": args.steps,
+            "channels": len(cfg.grid.map_channels),
+            "host_median_s": host_t["median_s"], "host": host_t,
+            "median_s": host_t["median_s"] + device_t["median_s"],
+            "device_median_s": device_t["median_s"], "device": device_t}
 
 
 def device_fields() -> dict:
@@ -273,11 +311,10 @@ def device_fields() -> dict:
 def sample_case(cfg, params, args) -> dict:
     """Sampling throughput: whole scenes, B at once, M = cfg.sample.proposals."""
     import jax
-    import jax.numpy as jnp
     import numpy as np
     from synthetic import synthetic_batch
 
-    from scenegen_jax.likelihood.batch import crop_batch
+    from scenegen_jax.likelihood.batch import batch_scenes
     from scenegen_jax.sampling import SamplerOptions, StopReason, sample_scenes
     from scenegen_jax.scene import STOP
 
@@ -298,7 +335,7 @@ def sample_case(cfg, params, args) -> dict:
         bias = params["class_mlp2"]["bias"]
         params["class_mlp2"]["bias"] = bias.at[STOP].add(-10.0)
         host = synthetic_batch(cfg, b, 0, seed=2)
-    maps, scenes = crop_batch(host, jnp.zeros(b), cfg.grid)
+    maps, scenes = batch_scenes(host, cfg.grid)
     counter = iter(range(10**6))
     last = {}
 
@@ -468,6 +505,16 @@ def summarize(rows: list[dict]) -> dict:
                     "ours_ms_per_scene_step": o["per_scene_step_ms"],
                     "ref_ms_per_scene_step": p["per_scene_ms"],
                     "speedup": p["per_scene_ms"] / o["per_scene_step_ms"]}
+    for d in rows:  # the train step with its maps drawn, against the step alone
+        if not (d.get("ours") and d.get("what") == "raster" and d.get("median_s")):
+            continue
+        for t in rows:
+            if (t.get("ours") and t.get("what") == "train" and not t.get("remat_forced")
+                    and t.get("median_s") and (t["config"], t["grid"], t["batch"], t["steps"])
+                    == (d["config"], d["grid"], d["batch"], d["steps"])):
+                out[f"train_{d['config']}_grid{d['grid']}_B{d['batch']}_with_maps_drawn"] = {
+                    "step_s": t["median_s"], "maps_s": d["median_s"],
+                    "ratio": t["median_s"] / (t["median_s"] + d["median_s"])}
     return out
 
 
@@ -492,7 +539,10 @@ def cpu_ours(args) -> list[dict]:
     rows += ours("score", grid=320, steps=25, batch=1, runs=big)
     for b in (1, 32):
         rows += ours("sample", grid=320, batch=b, runs=big)
+    # The maps of the train rows' batches, drawn from vector maps (`raster_case`).
+    rows += ours("raster", grid=320, steps=25, batch=1, runs=big)
     cpu = {"config": "cpu"}
+    rows += ours("raster", steps=25, batch=4, runs=r, **cpu)
     rows += ours("train", steps=25, batch=4, runs=r, **cpu)
     rows += ours("score", steps=25, batch=8, runs=r, **cpu)
     if args.workdir and not os.path.isdir(os.path.join(args.workdir, "checkpoints")):
@@ -711,7 +761,7 @@ def main() -> None:
     sub = p.add_subparsers(dest="cmd")
     sub.add_parser("first", help="only the time-to-first-result rows (both sides, or --only)")
     c = sub.add_parser("case", help="one measurement of ours, in this process")
-    c.add_argument("kind", choices=("train", "score", "sample"))
+    c.add_argument("kind", choices=("train", "score", "sample", "raster"))
     c.add_argument("--config", default="paper", choices=("paper", "cpu"))
     c.add_argument("--grid", type=int, default=128)
     c.add_argument("--steps", type=int, default=25, help="T, generation steps (last = stop)")

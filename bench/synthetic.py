@@ -6,15 +6,14 @@ import jax
 import numpy as np
 
 from scenegen_jax.likelihood.batch import Batch
-from scenegen_jax.raster.map import ALL_MAP_CHANNELS
 from scenegen_jax.scene import Actors, canonical_order, make_ego
 
 
 def synthetic_batch(cfg, b: int, n_actors: int, seed: int = 0) -> Batch:
-    """b cached-layout scenes with n_actors random actors each and a random binary map."""
+    """b unrotated scenes with n_actors random actors each and a random binary map."""
     rng = np.random.default_rng(seed)
-    s = cfg.grid.canvas_size
-    canvas = (rng.random((b, s, s, len(ALL_MAP_CHANNELS))) < 0.3).astype(np.float16)
+    h = cfg.grid.grid_size
+    maps = (rng.random((b, h, h, len(cfg.grid.map_channels))) < 0.3).astype(np.float32)
     slots = max(cfg.grid.max_actors, n_actors)
     half = cfg.grid.region_m / 2 - 1
     actors = []
@@ -30,4 +29,4 @@ def synthetic_batch(cfg, b: int, n_actors: int, seed: int = 0) -> Batch:
         actors.append(jax.tree.map(np.asarray, canonical_order(a, cfg.grid)))
     stacked = jax.tree.map(lambda *x: np.stack(x), *actors)
     egos = jax.tree.map(lambda *x: np.stack(x), *[make_ego(cfg.grid.ego_size_m)] * b)
-    return Batch(canvas=canvas, actors=stacked, ego=egos)
+    return Batch(maps=maps, thetas=np.zeros(b, np.float32), actors=stacked, ego=egos)

@@ -112,10 +112,10 @@ def cmd_adopt(args) -> None:
 def cmd_sample(args) -> None:
     import numpy as np
 
-    from scenegen_jax.data.cache import cached_scene, load_cache
+    from scenegen_jax.data.cache import load_cache
     from scenegen_jax.eval.evaluate import MMD_ROWS, real_scenes, sample_scenegen
     from scenegen_jax.eval.mmd import mmd_table
-    from scenegen_jax.eval.realism import drivable_share
+    from scenegen_jax.eval.realism import drivable_share, map_canvases
     from scenegen_jax.train.loop import load_trained
 
     cfg, state = load_trained(args.workdir)
@@ -126,8 +126,8 @@ def cmd_sample(args) -> None:
     samples = sample_scenegen(state.params, cfg, maps, scenes, args.seed)
     mmd = mmd_table([s.actors for s in scenes], samples, region_m=cfg.grid.region_m)
     on = total = 0
-    for i, actors in zip(indices, samples, strict=True):
-        a, b = drivable_share(cached_scene(cache, int(i), cfg)[0], actors, cfg)
+    for canvas, actors in zip(map_canvases(cache, indices, cfg), samples, strict=True):
+        a, b = drivable_share(canvas, actors, cfg)
         on, total = on + a, total + b
     write(member_path(args.sweep, args.value), {
         "sweep": args.sweep, "value": args.value, "workdir": args.workdir,

@@ -30,7 +30,7 @@ from scenegen_jax.data.cache import load_cache
 from scenegen_jax.distributions import params as P
 from scenegen_jax.eval import nll
 from scenegen_jax.likelihood import unroll
-from scenegen_jax.likelihood.batch import crop_batch, gather_batch
+from scenegen_jax.likelihood.batch import batch_scenes, gather_batch
 from scenegen_jax.scene import VEHICLE, bin_index
 
 
@@ -70,13 +70,12 @@ def main() -> None:
     unroll.actor_log_likelihood = with_tail_term(args.area)
     indices = np.unique(np.linspace(0, len(cache) - 1, min(args.num, len(cache))).astype(int))
     drivable = cfg.grid.map_channels.index("drivable_area")
-    crop = jax.jit(crop_batch, static_argnames="grid")  # eagerly, each op would compile alone
     real, model, on_road = [], [], []
     for i in indices:  # one scene per call: score_cache scores a contiguous range
         s = nll.score_cache(params, cache, cfg, batch_size=1, progress=False,
                             scenes=range(int(i), int(i) + 1))
         # The scene as the scorer sees it: step t is actor t in canonical order.
-        maps, scene = crop(gather_batch(cache, np.array([i]), cfg.grid), np.zeros(1), grid=cfg.grid)
+        maps, scene = batch_scenes(gather_batch(cache, np.array([i]), cfg.grid), cfg.grid)
         n = scene.actors.cls.shape[1]  # slots; the scorer's later steps hold no actor
         vehicle = (nll.actor_steps(s)[0] & (s["step_cls"][0] == VEHICLE))[:n]
         size = np.asarray(scene.actors.size[0])[vehicle]

@@ -50,6 +50,7 @@ from scipy.ndimage import distance_transform_edt
 
 from scenegen_jax.config import Config
 from scenegen_jax.data.cache import load_cache
+from scenegen_jax.eval.realism import map_canvases
 from scenegen_jax.raster.map import ALL_MAP_CHANNELS, ORIENTATION_CHANNELS
 from scenegen_jax.scene import CLASS_NAMES, VEHICLE, bin_index
 
@@ -79,12 +80,18 @@ def real_scenes(cache, cls: str):
         yield i, [(x, y, s) for (x, y), s in zip(position, speed, strict=True)]
 
 
+def _grid_config(cache) -> Config:
+    """A config of the cache's grid (size and resolution)."""
+    return Config().replace(grid_size=int(cache.meta["grid_size"]),
+                            m_per_px=float(cache.meta["m_per_px"]))
+
+
 def scene_cells(cache, map_index: int, actors) -> list[tuple[float, bool] | None]:
     """For each (x, y, speed) of `actors`: its distance (m) to the nearest drivable pixel of map
     `map_index`'s canvas (0 on it) and whether it stands on a lane, or None when it is not
     counted: `RADIUS_M` or more from the ego, or off the canvas."""
     m = float(cache.meta["m_per_px"])
-    canvas = np.asarray(cache.maps[map_index])
+    canvas = next(map_canvases(cache, [map_index], _grid_config(cache)))
     road = canvas[..., ALL_MAP_CHANNELS.index("drivable_area")] >= 0.5
     lane = np.hypot(*(canvas[..., ALL_MAP_CHANNELS.index(c)] for c in ORIENTATION_CHANNELS)) > 0.5
     half = road.shape[0] * m / 2
@@ -118,8 +125,7 @@ def counted(distances: list[float | None]) -> np.ndarray:
 def in_canonical_order(cache, actors: list) -> list:
     """`actors` (x, y, speed) sorted by ascending bin of the cache's model grid
     (`scene.bin_index`: the canonical order in which the model samples them)."""
-    cfg = Config().replace(grid_size=int(cache.meta["grid_size"]),
-                           m_per_px=float(cache.meta["m_per_px"]))
+    cfg = _grid_config(cache)
     if not actors:
         return []
     key = np.asarray(bin_index(np.asarray(actors, np.float32)[:, :2], cfg.grid))

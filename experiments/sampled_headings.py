@@ -23,11 +23,10 @@ import json
 import numpy as np
 
 from scenegen_jax.cli.common import add_model_args, load_model, location_temperature
-from scenegen_jax.data.cache import cached_scene
 from scenegen_jax.data.union import load_union
 from scenegen_jax.eval import evaluate as ev
 from scenegen_jax.eval.mmd import HEADING_BINS, HEADING_WIDTH, scene_histograms
-from scenegen_jax.eval.realism import vehicle_cells
+from scenegen_jax.eval.realism import map_canvases, vehicle_cells
 from scenegen_jax.sampling import SamplerOptions
 
 RADIUS_M = 40.0
@@ -88,7 +87,7 @@ def main() -> None:
     methods["SceneGen"] = ev.sample_scenegen(params, cfg, maps, scenes, args.seed,
                                              options=options)
     methods = {"real": [s.actors for s in scenes], **methods}
-    canvases = [np.asarray(cached_scene(cache, int(i), cfg)[0]) for i in indices]
+    canvases = list(map_canvases(cache, indices, cfg))
     report = {"step": step, "data": args.data, "columns": "share, on lane, on drivable"}
     for name, sets in methods.items():
         hist = scene_histograms(sets, "vehicle", cfg.grid.region_m)["heading"].mean(0)

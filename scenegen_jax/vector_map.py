@@ -155,6 +155,37 @@ def resample_polyline(points: np.ndarray, n: int) -> np.ndarray:
     return np.stack([np.interp(t, s, points[:, 0]), np.interp(t, s, points[:, 1])], axis=1)
 
 
+def resample_polylines(lines: list[np.ndarray], counts: np.ndarray) -> list[np.ndarray]:
+    """`resample_polyline` of many polylines at once: counts[i] points along lines[i] ([P, 2]
+    each), in one interpolation over their arc lengths laid end to end (each line's own
+    length range apart from the next by 1 m)."""
+    if not lines:
+        return []
+    pts = [np.asarray(p, np.float64) for p in lines]
+    seg = [np.hypot(*np.diff(p, axis=0).T) for p in pts]
+    total = np.array([x.sum() for x in seg])
+    offset = np.concatenate([[0.0], np.cumsum(total + 1.0)[:-1]])
+    s = np.concatenate([np.concatenate([[0.0], np.cumsum(x)]) + o
+                        for x, o in zip(seg, offset, strict=True)])
+    counts = np.asarray(counts, np.int64)
+    which = np.repeat(np.arange(len(pts)), counts)
+    first = np.cumsum(counts) - counts
+    k = np.arange(len(which)) - first[which]
+    frac = k / np.maximum(counts[which] - 1, 1)
+    t = offset[which] + frac * total[which]
+    xy = np.concatenate(pts)
+    out = np.stack([np.interp(t, s, xy[:, 0]), np.interp(t, s, xy[:, 1])], axis=1)
+    return np.split(out, np.cumsum(counts)[:-1])
+
+
+def centerlines(lanes) -> list[np.ndarray]:
+    """`Lane.centerline` of every lane, computed together (`resample_polylines`)."""
+    counts = np.array([max(len(ln.left), len(ln.right), 2) for ln in lanes], np.int64)
+    left = resample_polylines([ln.left for ln in lanes], counts)
+    right = resample_polylines([ln.right for ln in lanes], counts)
+    return [0.5 * (a + b) for a, b in zip(left, right, strict=True)]
+
+
 def rotation_matrix(theta: float) -> np.ndarray:
     """2x2 counter-clockwise rotation by theta rad."""
     c, s = np.cos(theta), np.sin(theta)

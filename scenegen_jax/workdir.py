@@ -27,7 +27,7 @@ CHECKPOINTS = "checkpoints"
 # The files that tell what a folder is, by kind (`folder_kind`): a cache (`data.cache_layout`;
 # a sharded one has shard folders instead), an exported model (`pretrained`), a workdir.
 KIND_FILES = {
-    "cache": ("meta.json", "maps.npy", "actors.npz"),
+    "cache": ("meta.json", "actors.npz", "map_index.npy"),
     "exported model": ("manifest.json", "params.msgpack"),
     "training workdir": ("data.json", "metrics.jsonl", CHECKPOINTS),
 }

@@ -189,12 +189,14 @@ def caches(root, tmp_path_factory):
 
 
 def _cache_shares(cache, cfg) -> dict[str, tuple[int, int]]:
-    """{scenario id: (vehicle centres on the cached drivable channel, vehicles)} over the
-    cache's scenes, vehicles within the grid region."""
+    """{scenario id: (vehicle centres on the drivable channel drawn from the cache, vehicles)}
+    over the cache's scenes, vehicles within the grid region."""
+    from scenegen_jax.eval.realism import map_canvases
+
     channel = ALL_MAP_CHANNELS.index("drivable_area")
     out = collections.defaultdict(lambda: (0, 0))
-    for i, scene_id in enumerate(cache.scene_ids):
-        canvas = np.asarray(cache.maps[i])
+    canvases = map_canvases(cache, range(len(cache)), cfg)
+    for (i, scene_id), canvas in zip(enumerate(cache.scene_ids), canvases, strict=True):
         half = canvas.shape[0] * cfg.grid.m_per_px / 2
         a = cache.actors
         sel = a.valid[i] & (a.cls[i] == VEHICLE) & in_region(a.position[i], cfg.grid)

@@ -66,8 +66,8 @@ def _truncated_actors(tmp_path, cache, data_root):
 
 def _truncated_maps(tmp_path, cache, data_root):
     c = _copy(cache, tmp_path)
-    _truncate(os.path.join(c, "maps.npy"))
-    return ["render", "--cache", c, "--out", str(tmp_path / "r.png")], "maps.npy"
+    _truncate(os.path.join(c, "map_points.npy"))
+    return ["render", "--cache", c, "--out", str(tmp_path / "r.png")], "map_points.npy"
 
 
 def _output_under_a_file(tmp_path, cache, data_root):

@@ -51,6 +51,7 @@ from scenegen_jax.data.av2 import ANNOTATION_COLUMNS, POSE_COLUMNS
 from scenegen_jax.data.av2_map import vector_map_from_json
 from scenegen_jax.data.cache import cached_scene, load_cache
 from scenegen_jax.data.cache_write import write_cache
+from scenegen_jax.data.map_store import ELEMENTS_FILE, INDEX_FILE, POINTS_FILE
 from scenegen_jax.data.sources import read_file as read_source_file
 from scenegen_jax.data.sources import source_spec
 from scenegen_jax.frame import MAX_SIZE_M
@@ -474,7 +475,7 @@ def small_cache(tmp_path_factory) -> str:
     return out
 
 
-CACHE_FILES = ("meta.json", "maps.npy", "actors.npz")
+CACHE_FILES = ("meta.json", "actors.npz", POINTS_FILE, INDEX_FILE, ELEMENTS_FILE)
 
 
 def _read_cache(path: str) -> Any:

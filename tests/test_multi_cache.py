@@ -14,8 +14,9 @@ import numpy as np
 import pytest
 from small import CFG
 
-from scenegen_jax.data.cache import check_compatible, load_cache
+from scenegen_jax.data.cache import cached_scene, check_compatible, load_cache
 from scenegen_jax.data.cache_write import write_cache
+from scenegen_jax.data.map_store import MapStore
 from scenegen_jax.data.union import CacheUnion, load_union
 from scenegen_jax.frame import Frame
 from scenegen_jax.likelihood.batch import gather_batch
@@ -150,17 +151,19 @@ def test_union_reads_each_cache_in_place(caches):
     u = load_union([a, b], CFG)
     assert isinstance(u, CacheUnion) and len(u) == 12 and u.sizes == [7, 5]
     assert u.labels == ["av2:a", "womd_json:b"]
-    assert all(isinstance(m.maps, np.memmap) for m in u.members)  # maps stay on disk
+    # Map arrays stay on disk.
+    assert all(isinstance(m.map_store.points, np.memmap) for m in u.members)
     assert u.actors.cls.shape == (12, 2 * CFG.grid.max_actors)  # b's fewer slots padded
-    batch = gather_batch(u, np.array([1, 7 + 2]), CFG.grid)
-    np.testing.assert_array_equal(batch.canvas[1], cb.maps[2])
-    np.testing.assert_array_equal(batch.actors.position[0], ca.actors.position[1])
+    vmap, actors, _ = cached_scene(u, 7 + 2, CFG)
+    assert vmap == cb.map_store.frame_map(2) == VectorMap()  # the hand-made frames' empty map
+    np.testing.assert_array_equal(cached_scene(u, 1, CFG)[1].position, ca.actors.position[1])
     slots = 2 * B_ACTORS
-    np.testing.assert_array_equal(batch.actors.position[1, :slots], cb.actors.position[2])
-    assert not batch.actors.valid[1, slots:].any()
+    np.testing.assert_array_equal(actors.position[:slots], cb.actors.position[2])
+    assert not actors.valid[slots:].any()
     assert u.scene_name(9) == f"{b}: womd_json/002"
     one = load_union(a, CFG)  # one cache: its own arrays, unchanged
-    assert one.maps.shape == ca.maps.shape and one.scene_name(3) == "av2/003"
+    assert isinstance(one.map_store, MapStore) and len(one.map_store) == len(ca) == 7
+    assert one.scene_name(3) == "av2/003"
 
 
 def test_mismatched_caches_name_the_cache_and_field(caches, tmp_path):
@@ -278,6 +281,7 @@ def test_four_shards_train_to_the_parameters_of_one_cache(womd_root, tmp_path):
     """`prepare --shard I/4` x 4 (womd_mini GPUDrive JSON val, 14 files, 3 frames of each)
     reads as the unsharded cache and trains to the same parameters, bit for bit."""
     from small import train_args
+    from test_map_store import map_differences
 
     from scenegen_jax import cli
     from scenegen_jax.config import get_config
@@ -297,7 +301,9 @@ def test_four_shards_train_to_the_parameters_of_one_cache(womd_root, tmp_path):
     assert a.scene_ids == b.scene_ids and len(b.meta["shards"]) == 4
     for k in ACTOR_FIELDS:
         np.testing.assert_array_equal(getattr(a.actors, k), getattr(b.actors, k))
-    np.testing.assert_array_equal(a.maps[: len(a)], b.maps[: len(b)])
+    for i in range(len(a)):
+        assert map_differences(a.map_store.frame_map(i), b.map_store.frame_map(i),
+                               atol=0.0) == []
 
     for cache in (whole, sharded):  # in this process: the second run's programs are traced
         cli.main(train_args(cache, cache + "_run", 3))

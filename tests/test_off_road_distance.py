@@ -1,5 +1,5 @@
 """experiments/off_road_distance.py's split of the vehicles by where they stand (`by_place`), on
-a hand-drawn canvas: a drivable strip with a lane inside it."""
+a hand-drawn map: a drivable strip with a lane inside it."""
 
 import importlib.util
 import os
@@ -7,7 +7,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from scenegen_jax.raster.map import ALL_MAP_CHANNELS
+from scenegen_jax.vector_map import Lane, VectorMap
 
 _PATH = os.path.join(os.path.dirname(__file__), "..", "experiments", "off_road_distance.py")
 _spec = importlib.util.spec_from_file_location("off_road_distance", _PATH)
@@ -16,19 +16,23 @@ _spec.loader.exec_module(off_road)
 
 
 def _cache():
-    """One 20 x 20 px canvas at 1 m/px: columns 8-11 drivable, a lane (pointing along +x) in
-    columns 9-10; pixel column c covers x in [c - 10, c - 9) m."""
-    canvas = np.zeros((20, 20, len(ALL_MAP_CHANNELS)), np.float32)
-    canvas[:, 8:12, ALL_MAP_CHANNELS.index("drivable_area")] = 1.0
-    canvas[:, 9:11, ALL_MAP_CHANNELS.index("lane_orientation_cos")] = 1.0
-    return SimpleNamespace(meta={"m_per_px": 1.0}, maps=[canvas], scene_ids=["log/0"])
+    """One map at 1 m/px on a 14 px grid (a 22 px canvas: pixel column c covers x in
+    [c - 11, c - 10) m): the drivable strip |x| <= 2 m (columns 9-12) and a northbound lane
+    |x| <= 1 m (columns 10-11) along it."""
+    ys = np.linspace(-30.0, 30.0, 7)
+    lane = Lane(id=1, lane_type="VEHICLE", left=np.stack([np.full(7, -1.0), ys], 1),
+                right=np.stack([np.full(7, 1.0), ys], 1))
+    strip = np.array([[-2.0, -30.0], [2.0, -30.0], [2.0, 30.0], [-2.0, 30.0]])
+    vmap = VectorMap(lanes=(lane,), drivable_areas=(strip,))
+    return SimpleNamespace(meta={"m_per_px": 1.0, "grid_size": 14}, scene_ids=["log/0"],
+                           map_store=SimpleNamespace(frame_map=lambda i: vmap))
 
 
 def test_each_place_and_its_still_share():
-    actors = [(-0.5, 0.5, 5.0),  # column 9: on the lane, moving
-              (-1.5, 0.5, 0.0),  # column 8: drivable, off the lane, still
-              (-3.5, 0.5, 0.1),  # column 6: 2 m off the drivable area, still
-              (-7.5, 0.5, 1.0),  # column 2: 6 m off, moving
+    actors = [(-0.5, 0.5, 5.0),  # column 10: on the lane, moving
+              (-1.5, 0.5, 0.0),  # column 9: drivable, off the lane, still
+              (-3.5, 0.5, 0.1),  # column 7: 2 m off the drivable area, still
+              (-7.5, 0.5, 1.0),  # column 3: 6 m off, moving
               (15.0, 0.5, 0.0)]  # beyond the canvas: not counted
     got = off_road.by_place(_cache(), [(0, actors)], still_mps=0.2)
     assert {k: v["share"] for k, v in got.items()} == {

@@ -106,10 +106,11 @@ def test_real_argoverse_scenes_are_on_the_road_along_their_lanes(data_root, tmp_
     """The real val log, as a user's reference: every vehicle within 40 m stands on the
     drivable area, and most vehicles on a lane point along it (93 % at the `cpu` grid);
     annotated boxes do not overlap."""
-    from scenegen_jax.data.cache import cached_scene, load_cache
+    from scenegen_jax.data.cache import load_cache
     from scenegen_jax.data.cache_write import write_cache
     from scenegen_jax.data.sources import read_frames, source_spec
     from scenegen_jax.eval.evaluate import real_scenes
+    from scenegen_jax.eval.realism import map_canvases
 
     cfg = get_config("tiny")
     frames = read_frames(source_spec("av2", data_root, "val", 20), collections.Counter())
@@ -118,7 +119,7 @@ def test_real_argoverse_scenes_are_on_the_road_along_their_lanes(data_root, tmp_
     cache = load_cache(str(tmp_path))
     indices = np.arange(len(cache))
     _, scenes = real_scenes(cache, indices, cfg)
-    canvases = [np.asarray(cached_scene(cache, int(i), cfg)[0]) for i in indices]
+    canvases = list(map_canvases(cache, indices, cfg))
     stats = realism_stats(canvases, [s.actors for s in scenes], cfg)
     assert stats["vehicles_within_40m"] > 50, stats
     assert stats["on_drivable_share"] > 0.95, stats

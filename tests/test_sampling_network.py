@@ -64,8 +64,7 @@ def real_inputs(val_cache):
 
     Randomly initialised, with the class bias set so that stop is rare and the box means set
     to ~2 m x 4.5 m, so collision rejection is exercised."""
-    from scenegen_jax.data.cache import cached_scene
-    from scenegen_jax.raster.transform import crop_map
+    from scenegen_jax.likelihood.batch import grid_scene
 
     # init_state, as the CLI's checkpoint template uses: its eager op compiles are shared.
     params = jax.tree.map(np.asarray, init_state(TINY).params)
@@ -74,13 +73,8 @@ def real_inputs(val_cache):
     mu = np.log(np.array([[2.0, 4.5], [0.6, 0.6], [0.7, 1.8]]))
     bias[:, K:3 * K] = np.repeat(mu, K, axis=0).reshape(3, K, 2).reshape(3, 2 * K)
     params["box2_b"] = bias
-    crop = jax.jit(crop_map, static_argnums=2)
-    maps, egos = [], []
-    for i in (0, 4):
-        canvas, _, ego = cached_scene(val_cache, i, TINY)
-        maps.append(np.asarray(crop(jnp.asarray(canvas), 0.0, TINY.grid)))
-        egos.append(jax.tree.map(np.asarray, ego))
-    return params, np.stack(maps), jax.tree.map(lambda *x: np.stack(x), *egos)
+    maps = np.stack([grid_scene(val_cache, i, TINY.grid)[0] for i in (0, 4)])
+    return params, maps, val_cache.ego(np.array([0, 4]))
 
 
 def run_real(params, maps, egos, key, given=None, caps=None, num_per_map=2, parallel=None,
@@ -252,7 +246,8 @@ def test_real_network_order_channel_is_the_one_training_sees(real_inputs):
 def test_library_calls_check_their_arguments_before_any_work(val_cache, data_root, tmp_path):
     """The Python API refuses what the command line refuses, at the call: a cache of another
     grid (read at the wrong scale before), a seed JAX would fold onto another (2^32 gave seed
-    0's scenes), scene numbers outside the cache, an uncropped canvas, an empty request."""
+    0's scenes), scene numbers outside the cache, maps larger than the grid, an empty
+    request."""
     from scenegen_jax.eval.evaluate import evaluate
     from scenegen_jax.eval.nll import score_cache
     from scenegen_jax.model.network import init_params
@@ -286,7 +281,7 @@ def test_library_calls_check_their_arguments_before_any_work(val_cache, data_roo
             given=empty_actors(2))
     egos = val_cache.ego(np.arange(2))
     refused(r"maps: shape \(2, 48, 48, 15\), config .tiny. needs \[B, 32, 32", sample_scenes,
-            jax.random.key(0), params, TINY, val_cache.maps[:2], egos)
+            jax.random.key(0), params, TINY, np.zeros((2, 48, 48, 15), np.float32), egos)
     h = TINY.grid.grid_size
     cropped = np.zeros((2, h, h, len(TINY.grid.map_channels)), np.float32)
     refused(
@@ -365,7 +360,7 @@ def test_library_calls_check_their_arguments_before_any_work(val_cache, data_roo
         r"map_raster: shape \(48, 48, 15\)",
         render_scene,
         str(tmp_path / "x.png"),
-        val_cache.maps[0],
+        np.zeros((48, 48, 15), np.float32),
         TINY.grid.map_channels,
         empty_actors(1),
         tree_take(egos, 0),

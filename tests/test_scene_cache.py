@@ -11,7 +11,8 @@ import pytest
 
 from scenegen_jax.config import get_config
 from scenegen_jax.data.cache import cached_scene, load_cache
-from scenegen_jax.raster.map import ALL_MAP_CHANNELS
+from scenegen_jax.data.map_store import ELEMENTS_FILE, INDEX_FILE, POINTS_FILE
+from scenegen_jax.raster.jax_map import draw_maps
 from scenegen_jax.raster.transform import scene_from_cached
 from scenegen_jax.scene import (
     PEDESTRIAN,
@@ -25,6 +26,7 @@ from scenegen_jax.scene import (
 )
 
 CFG = get_config("tiny")
+CACHE_FILES = ("meta.json", "actors.npz", POINTS_FILE, INDEX_FILE, ELEMENTS_FILE)
 
 
 def test_bin_convention_row_major_top_left():
@@ -85,20 +87,18 @@ def test_validate_names_the_field():
 def test_cache_scenes_are_valid_and_complete(tiny_train_cache):
     cache = tiny_train_cache
     assert len(cache) == 3 * 20  # every 8th of the 156 frames of each of the 3 train logs
-    assert cache.maps.shape[1:] == (
-        CFG.grid.canvas_size,
-        CFG.grid.canvas_size,
-        len(ALL_MAP_CHANNELS),
-    )
     for index in range(0, len(cache), 5):
-        canvas, actors, ego = cached_scene(cache, index, CFG)
-        m, scene, overflow = jax.jit(lambda c, a, e, t: scene_from_cached(c, a, e, t, CFG.grid))(
-            canvas, actors, ego, 0.3 * index
+        vmap, actors, ego = cached_scene(cache, index, CFG)
+        assert len(vmap.lanes) > 0 and vmap.dataset == "av2"
+        scene, overflow = jax.jit(lambda a, e, t: scene_from_cached(a, e, t, CFG.grid))(
+            actors, ego, 0.3 * index
         )
         scene = jax.tree.map(np.asarray, scene)
         scene.validate(CFG.grid, where=f"scene {index}")
         assert int(overflow) == 0
-        assert m.shape == (CFG.grid.grid_size, CFG.grid.grid_size, len(CFG.grid.map_channels))
+        m = np.asarray(draw_maps([vmap], [0.3 * index], CFG.grid))
+        assert m.shape == (1, CFG.grid.grid_size, CFG.grid.grid_size, len(CFG.grid.map_channels))
+        assert np.isfinite(m).all() and m.any()
 
 
 def test_cache_summary_and_bad_cache(tiny_train_cache, tmp_path):
@@ -110,8 +110,9 @@ def test_cache_summary_and_bad_cache(tiny_train_cache, tmp_path):
     src = tiny_train_cache.path
     dst = tmp_path / "broken"
     dst.mkdir()
-    for name in ("maps.npy", "meta.json"):
-        os.symlink(os.path.join(src, name), dst / name)
+    for name in CACHE_FILES:
+        if name != "actors.npz":
+            os.symlink(os.path.join(src, name), dst / name)
     with np.load(os.path.join(src, "actors.npz")) as z:
         arrays = {k: z[k][:-1] for k in z.files}
     np.savez(dst / "actors.npz", **arrays)
@@ -122,20 +123,18 @@ def test_cache_summary_and_bad_cache(tiny_train_cache, tmp_path):
     assert json.loads(json.dumps(meta["summary"]))["actors"]["vehicle"] > 0
 
 
-def _damaged_copy(src: str, dst, actors=None, maps=None) -> str:
+def _damaged_copy(src: str, dst, actors=None) -> str:
     """A copy of cache `src` in `dst` whose actor arrays (`actors`: field -> function of the
-    array) or map canvases (`maps`: a function of the array) are rewritten; the rest linked."""
+    array) are rewritten; the rest linked. (Damaged map files: test_map_store.)"""
     dst.mkdir()
-    os.symlink(os.path.join(src, "meta.json"), dst / "meta.json")
+    for name in CACHE_FILES:
+        if name != "actors.npz":
+            os.symlink(os.path.join(src, name), dst / name)
     with np.load(os.path.join(src, "actors.npz")) as z:
         arrays = {k: z[k] for k in z.files}
     for field, damage in (actors or {}).items():
         arrays[field] = damage(arrays[field])
     np.savez(dst / "actors.npz", **arrays)
-    if maps is None:
-        os.symlink(os.path.join(src, "maps.npy"), dst / "maps.npy")
-    else:
-        np.save(dst / "maps.npy", maps(np.load(os.path.join(src, "maps.npy"))))
     return str(dst)
 
 
@@ -170,34 +169,15 @@ def test_damaged_actor_arrays_name_the_field(tiny_train_cache, tmp_path, field, 
         load_cache(path)
 
 
-def test_damaged_maps_are_named(tiny_train_cache, tmp_path):
-    from scenegen_jax.eval.nll import score_cache
-    from scenegen_jax.model.network import init_params
-
-    path = _damaged_copy(tiny_train_cache.path, tmp_path / "shape", maps=lambda m: m[..., :3])
-    with pytest.raises(ValueError, match=rf"^{tmp_path / 'shape' / 'maps.npy'}: float16 "):
-        load_cache(path)
-
-    def nan_scene_1(m):
-        m[1, 10, 10, 0] = np.nan
-        return m
-
-    # NaN in a map reads (the canvases are memory-mapped, not scanned), but scoring stops at
-    # the scene before any work on it.
-    cache = load_cache(_damaged_copy(tiny_train_cache.path, tmp_path / "nan", maps=nan_scene_1))
-    params = init_params(CFG.model, jax.random.key(0))
-    with pytest.raises(ValueError, match=r"nan: .*: field canvas: NaN or inf"):
-        score_cache(params, cache, CFG, batch_size=2, progress=False, workers=1, scenes=range(2))
-
-
 @pytest.mark.parametrize(
-    "name, keep", [("actors.npz", 0.5), ("maps.npy", 0.5), ("maps.npy", 0.0), ("meta.json", 0.5)]
+    "name, keep", [("actors.npz", 0.5), (POINTS_FILE, 0.5), (POINTS_FILE, 0.0),
+                   (INDEX_FILE, 0.5), (ELEMENTS_FILE, 0.5), ("meta.json", 0.5)]
 )
 def test_truncated_cache_files_are_named(tiny_train_cache, tmp_path, name, keep):
     """A cache file cut short (a full disk, a killed copy) gives one error naming it."""
     src, dst = tiny_train_cache.path, tmp_path / "cut"
     dst.mkdir()
-    for n in ("maps.npy", "meta.json", "actors.npz"):
+    for n in CACHE_FILES:
         if n != name:
             os.symlink(os.path.join(src, n), dst / n)
     data = open(os.path.join(src, name), "rb").read()
@@ -209,8 +189,7 @@ def test_truncated_cache_files_are_named(tiny_train_cache, tmp_path, name, keep)
 def test_overflow_is_counted():
     cfg = CFG.replace(max_actors=3)
     a = _actors([[x, 0.0] for x in (-30.0, -10.0, 5.0, 20.0, 30.0)])
-    canvas = np.zeros((cfg.grid.canvas_size, cfg.grid.canvas_size, 11), np.float32)
-    _, scene, overflow = scene_from_cached(canvas, a, make_ego(cfg.grid.ego_size_m), 0.0, cfg.grid)
+    scene, overflow = scene_from_cached(a, make_ego(cfg.grid.ego_size_m), 0.0, cfg.grid)
     assert int(overflow) == 2 and int(np.sum(scene.actors.valid)) == 3
     assert isinstance(scene.actors, Actors)
 
@@ -219,6 +198,8 @@ def test_sharded_prepare_reads_as_the_whole_cache(tiny_train_cache, data_root, t
     """Two `prepare --shard I/2` jobs make one cache equal to the unsharded one (the same
     frames: every 8th step of the train logs); a missing or foreign shard is an error."""
     import shutil
+
+    from test_map_store import map_differences
 
     from scenegen_jax.data.cache_layout import ACTOR_FIELDS
     from scenegen_jax.data.prepare import prepare
@@ -238,8 +219,8 @@ def test_sharded_prepare_reads_as_the_whole_cache(tiny_train_cache, data_root, t
         np.testing.assert_array_equal(getattr(sharded.actors, k), want)
     np.testing.assert_array_equal(sharded.ego_size, tiny_train_cache.ego_size)
     for i in (0, 39, 40, 59):  # both sides of the shard boundary
-        np.testing.assert_array_equal(sharded.maps[i], tiny_train_cache.maps[i])
-    np.testing.assert_array_equal(sharded.maps[[3, 45]], tiny_train_cache.maps[[3, 45]])
+        got = sharded.map_store.frame_map(i)
+        assert map_differences(got, tiny_train_cache.map_store.frame_map(i), atol=0.0) == []
     assert len(load_union([str(out), tiny_train_cache.path])) == 120  # a cache like any other
 
     other = tmp_path / "other"

@@ -16,8 +16,7 @@ from small import CFG, two_small_scenes
 
 from scenegen_jax.distributions import TERMS
 from scenegen_jax.eval.nll import score_batch, score_cache, worst_scenes
-from scenegen_jax.likelihood.batch import Batch, crop_batch, gather_batch
-from scenegen_jax.raster.transform import crop_map
+from scenegen_jax.likelihood.batch import batch_scenes, gather_batch
 from scenegen_jax.scene import VEHICLE, in_region, pixel_centers
 
 
@@ -89,14 +88,14 @@ def test_actor_moved_into_a_block_scores_higher_location_nll(tiny_train_cache, s
     drivable_channel = full.grid.map_channels.index("drivable_area")
     moved_count, higher = 0, 0
     for b in range(len(scenes)):
-        grid = np.asarray(crop_map(jnp.asarray(batch.canvas[b]), 0.0, full.grid))
+        grid = np.asarray(gather_batch(tiny_train_cache, scenes[b : b + 1], full.grid).maps[0])
         target = off_road_point(grid[..., drivable_channel] > 0.5, CFG)
         a = batch.actors
         inside = np.asarray(in_region(jnp.asarray(a.position[b]), CFG.grid)) & a.valid[b]
         for j in np.flatnonzero(inside & (a.cls[b] == VEHICLE)):
             position = a.position.copy()
             position[b, j] = target
-            moved = Batch(batch.canvas, a.replace(position=position), batch.ego)
+            moved = batch._replace(actors=a.replace(position=position))
             nll = _location_nll(fitted, moved).sum(1)
             np.testing.assert_array_equal(nll[1 - b], base[1 - b])  # the other scene unchanged
             moved_count += 1
@@ -133,8 +132,7 @@ def test_score_cli_terms_sum_and_top_k(tiny_train_cache, tmp_path, capsys):
     # Each term of the first two rows against the step-by-step reference of the model
     # (tests/reference_unroll.py) under the checkpoint the command scored with.
     _, params, _ = load_params(workdir)
-    maps, scene = crop_batch(gather_batch(tiny_train_cache, np.arange(2), CFG.grid), jnp.zeros(2),
-                             CFG.grid)
+    maps, scene = batch_scenes(gather_batch(tiny_train_cache, np.arange(2), CFG.grid), CFG.grid)
     ref = reference_step_terms(params, CFG, maps, scene, None)
     for i in range(2):
         for k in TERMS:

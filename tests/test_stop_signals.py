@@ -23,7 +23,8 @@ def test_a_second_writer_of_a_cache_is_refused_naming_the_first(tmp_path):
     cfg = get_config("tiny")
     with CacheWriter(str(tmp_path), cfg):
         assert os.path.exists(tmp_path / ".lock")
-        assert any(n.startswith("maps.npy.") and n.endswith(".tmp") for n in os.listdir(tmp_path))
+        assert any(n.startswith("map_points.npy.") and n.endswith(".tmp")
+                   for n in os.listdir(tmp_path))
         with pytest.raises(LockHeld, match=rf"\.lock: locked by pid {os.getpid()} "):
             CacheWriter(str(tmp_path), cfg)
     assert os.listdir(tmp_path) == []  # no scenes written: nothing left, the lock released
@@ -54,7 +55,7 @@ def test_sigterm_to_prepare_alone_removes_its_outputs_and_ends_its_workers(tmp_p
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 128 + signal.SIGTERM, err
     assert "Traceback" not in err and "interrupted (SIGTERM)" in err
-    assert sorted(os.listdir(out)) == []  # no maps.npy.<pid>.tmp, no .lock, no cache
+    assert sorted(os.listdir(out)) == []  # no map_points.npy.<pid>.tmp, no .lock, no cache
     deadline = time.monotonic() + 60
     while any(alive(w) for w in workers) and time.monotonic() < deadline:
         time.sleep(0.5)

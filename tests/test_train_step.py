@@ -24,9 +24,8 @@ from small import (
 from train_batches import batch_of, jitted_train_step
 
 from scenegen_jax.config import get_config
-from scenegen_jax.likelihood.batch import Batch, check_batch, crop_batch
+from scenegen_jax.likelihood.batch import Batch, batch_scenes, check_batch, gather_batch
 from scenegen_jax.likelihood.unroll import unroll_terms
-from scenegen_jax.raster.map import ALL_MAP_CHANNELS
 from scenegen_jax.scene import Actors, make_ego
 from scenegen_jax.train.data import batch_indices
 from scenegen_jax.train.step import (
@@ -103,7 +102,7 @@ def test_split_train_step_equals_the_one_program_step(tiny_train_cache, small_sc
 
     cfg = CFG.replace(rotate_augment=True, bptt_window=6)
     assert chunk_steps(cfg.model) == 3 and num_windows(cfg.model) == 2
-    batch = jax.device_put(batch_of(tiny_train_cache, small_scenes))
+    batch = jax.device_put(gather_batch(tiny_train_cache, small_scenes, cfg.grid, [0.5, 2.0]))
     shapes = jax.eval_shape(lambda: (init_state(cfg), batch))
     split, fused = SplitTrainStep(cfg, *shapes, quick=False), make_train_step(cfg)
     def flat(params):
@@ -189,7 +188,7 @@ def test_train_step_compiles_once(tiny_train_cache):
 
 def _batch_shapes(cfg, b: int) -> Batch:
     """The shapes and dtypes of a cached batch of `b` scenes of `cfg` (`gather_batch`)."""
-    s, m = cfg.grid.canvas_size, cfg.grid.max_actors
+    h, m = cfg.grid.grid_size, cfg.grid.max_actors
     sds = jax.ShapeDtypeStruct
     actors = Actors(
         cls=sds((b, m), np.int32),
@@ -200,7 +199,8 @@ def _batch_shapes(cfg, b: int) -> Batch:
         valid=sds((b, m), np.bool_),
     )
     ego = jax.tree.map(lambda x: sds((b, *x.shape), x.dtype), make_ego(cfg.grid.ego_size_m))
-    return Batch(sds((b, s, s, len(ALL_MAP_CHANNELS)), np.float16), actors, ego)
+    return Batch(sds((b, h, h, len(cfg.grid.map_channels)), np.float32), sds((b,), np.float32),
+                 actors, ego)
 
 
 @pytest.mark.parametrize(
@@ -246,9 +246,9 @@ def test_remat_auto_stores_activations_where_they_fit(monkeypatch):
 def test_empty_scene_is_one_stop_step(tiny_train_cache, small_scenes):
     batch = batch_of(tiny_train_cache, small_scenes)
     empty = batch.actors.replace(valid=np.zeros_like(batch.actors.valid))
-    batch = Batch(batch.canvas, empty, batch.ego)
+    batch = batch._replace(actors=empty)
     params = random_params(CFG, jax.random.key(3))
-    maps, scene = crop_batch(batch, jnp.zeros(2), CFG.grid)
+    maps, scene = batch_scenes(batch, CFG.grid)
     terms, valid, cls = jax.jit(
         lambda p: unroll_terms(p, CFG.model, maps, scene, CFG.train.hard_negatives)
     )(params)
@@ -265,7 +265,7 @@ def test_empty_scene_is_one_stop_step(tiny_train_cache, small_scenes):
 
 def test_map_dropout_trains_as_on_a_blank_map(tiny_train_cache, small_scenes):
     batch = jax.device_put(batch_of(tiny_train_cache, small_scenes))
-    blank = batch._replace(canvas=jnp.zeros_like(batch.canvas))
+    blank = batch._replace(maps=jnp.zeros_like(batch.maps))
     state = init_state(CFG)
     _, dropped = jitted_train_step(state, batch, CFG.replace(map_dropout=1.0))
     _, no_map = jitted_train_step(state, blank, CFG)
@@ -403,7 +403,7 @@ for name, mesh in (("one", make_mesh(jax.devices()[:1])), ("eight", make_mesh())
     step = make_train_step(cfg, mesh)
     state = jax.device_put(init_state(cfg), NamedSharding(mesh, P()))
     batch = to_device(host, NamedSharding(mesh, P("data")))
-    assert len(batch.canvas.sharding.device_set) == mesh.size
+    assert len(batch.maps.sharding.device_set) == mesh.size
     state, stats = step(state, batch)
     out.append((float(stats["loss"]), float(stats["grad_norm"])))
     params[name] = state.params

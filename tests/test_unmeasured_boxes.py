@@ -5,7 +5,6 @@ term is masked in training and scoring, counted in `prepare`'s summary and in `s
 from __future__ import annotations
 
 import json
-import shutil
 
 import jax
 import jax.numpy as jnp
@@ -21,7 +20,7 @@ from scenegen_jax.data.prepare import prepare
 from scenegen_jax.data.sources import source_spec
 from scenegen_jax.distributions import HeadOutputs, actor_log_likelihood
 from scenegen_jax.eval.nll import score_cache, summarize_scores
-from scenegen_jax.likelihood.batch import crop_batch
+from scenegen_jax.likelihood.batch import batch_scenes
 from scenegen_jax.scene import VEHICLE, Actors
 from scenegen_jax.train.step import loss_fn
 
@@ -82,7 +81,7 @@ def test_an_unmeasured_box_leaves_only_the_box_term_out():
 def _grads(cache, idx):
     params = random_params(CFG, jax.random.key(0))
     batch = batch_of(cache, idx)
-    maps, scene = crop_batch(batch, jnp.zeros(len(idx)), CFG.grid)
+    maps, scene = batch_scenes(batch, CFG.grid)
     grads = jax.jit(jax.grad(lambda p: loss_fn(p, CFG, maps, scene)[0]))(params)
     return {"/".join(k): np.asarray(v) for k, v in flatten_dict(grads).items()}
 
@@ -119,22 +118,6 @@ def test_score_counts_the_masked_boxes(forecast_cache):
         assert summary[f"box_nll_per_{name}"] is None
     assert np.all(scores["box"] == 0.0)
     json.dumps(summary)  # the CLI prints it
-
-
-def test_a_cache_of_the_previous_version_reads_as_every_box_measured(tiny_train_cache, tmp_path):
-    """Caches written before `size_measured` existed load with every box measured."""
-    old = tmp_path / "old"
-    shutil.copytree(tiny_train_cache.path, old)
-    with np.load(old / "actors.npz") as z:
-        arrays = {k: z[k] for k in z.files if k != "size_measured"}
-    np.savez(old / "actors.npz", **arrays)
-    meta = json.loads((old / "meta.json").read_text())
-    (old / "meta.json").write_text(json.dumps({**meta, "version": 3}))
-    cache = load_cache(str(old))
-    assert cache.actors.size_measured.all()
-    (old / "meta.json").write_text(json.dumps({**meta, "version": 2}))
-    with pytest.raises(ValueError, match="field version: 2"):
-        load_cache(str(old))
 
 
 def test_placeholder_boxes_stay_out_of_the_area_statistic_and_the_overlaps():

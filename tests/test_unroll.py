@@ -10,7 +10,7 @@ import pytest
 from reference_unroll import reference_step_terms
 from small import CFG, random_params, two_small_scenes
 
-from scenegen_jax.likelihood.batch import crop_batch, gather_batch
+from scenegen_jax.likelihood.batch import batch_scenes, gather_batch
 from scenegen_jax.likelihood.grads import unroll_terms_and_grads
 from scenegen_jax.likelihood.terms import nll_metrics
 from scenegen_jax.likelihood.unroll import num_windows, unroll_terms
@@ -27,10 +27,10 @@ def _batch(cache, idx):
 
 
 def _crop(cache, idx, thetas, cfg):
-    """`crop_batch` of the two small scenes, the first read as complete: both hold more actors
-    than CFG's 6 slots (so no stop token: `Scene.complete`); the first read as if its region
-    held only those 6 gives the tests a stop token's terms too."""
-    maps, scene = crop_batch(_batch(cache, idx), jnp.asarray(thetas), cfg.grid)
+    """`batch_scenes` of the two small scenes at `thetas`, the first read as complete: both
+    hold more actors than CFG's 6 slots (so no stop token: `Scene.complete`); the first read
+    as if its region held only those 6 gives the tests a stop token's terms too."""
+    maps, scene = batch_scenes(gather_batch(cache, np.asarray(idx), cfg.grid, thetas), cfg.grid)
     return maps, scene.replace(complete=jnp.array([True, False]))
 
 
@@ -251,7 +251,7 @@ def test_a_truncated_scene_has_no_stop_token(tiny_train_cache, small_scenes):
     complete scene score the same terms at their 6 steps, plus the stop token's."""
     from scenegen_jax.scene import STOP
 
-    maps, scene = crop_batch(_batch(tiny_train_cache, small_scenes), jnp.zeros(2), CFG.grid)
+    maps, scene = batch_scenes(_batch(tiny_train_cache, small_scenes), CFG.grid)
     assert not np.any(np.asarray(scene.complete))
     assert np.all(np.asarray(scene.actors.valid))  # every slot is taken
     params = random_params(CFG, jax.random.key(5))

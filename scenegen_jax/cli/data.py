@@ -64,8 +64,8 @@ def rotation_rad(degrees: float) -> float:
 def cmd_render(args) -> None:
     import numpy as np
 
-    from scenegen_jax.data.cache import cached_scene, load_cache
-    from scenegen_jax.raster.transform import scene_from_cached
+    from scenegen_jax.data.cache import load_cache
+    from scenegen_jax.likelihood.batch import grid_scene
     from scenegen_jax.viz.render import render_scene
 
     cache = load_cache(args.cache)
@@ -76,8 +76,7 @@ def cmd_render(args) -> None:
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     theta = rotation_rad(args.rotate)
     for n, index in enumerate(indices):
-        canvas, actors, ego = cached_scene(cache, index, cfg)
-        map_raster, scene, _ = scene_from_cached(canvas, actors, ego, theta, cfg.grid)
+        map_raster, scene = grid_scene(cache, index, cfg.grid, theta)
         out = _image_path(args.out) if len(indices) == 1 else _numbered(args.out, n, index)
         render_scene(
             out,

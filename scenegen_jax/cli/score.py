@@ -104,17 +104,15 @@ def _render_worst(scores, cache, cfg, k: int, out_dir: str) -> list[str]:
     """Renders the k least likely scenes with their least likely actor highlighted."""
     import numpy as np
 
-    from scenegen_jax.data.cache import cached_scene
     from scenegen_jax.eval.nll import worst_scenes
-    from scenegen_jax.raster.transform import scene_from_cached
+    from scenegen_jax.likelihood.batch import grid_scene
     from scenegen_jax.scene import CLASS_NAMES
     from scenegen_jax.viz.render import render_scene
 
     os.makedirs(out_dir, exist_ok=True)
     paths = []
     for rank, (i, step, per_actor, terms) in enumerate(worst_scenes(scores, k)):
-        canvas, actors, ego = cached_scene(cache, i, cfg)
-        map_raster, scene, _ = scene_from_cached(canvas, actors, ego, 0.0, cfg.grid)
+        map_raster, scene = grid_scene(cache, i, cfg.grid)
         cls = CLASS_NAMES[int(scene.actors.cls[step])]
         worst = ", ".join(f"{t} {v:.1f}" for t, v in terms.items())
         path = os.path.join(out_dir, f"top{rank + 1:02d}_{i:05d}.png")

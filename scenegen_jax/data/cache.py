@@ -1,7 +1,7 @@
 """Reading a preprocessing cache (layout: `cache_layout`; written by `cache_write`): one
-directory or the shards of one, checked field by field, as a `Cache` whose maps are
-memory-mapped; several caches stacked as one (`stack_caches`) and checked against a config
-(`check_compatible`).
+directory or the shards of one, checked field by field, as a `Cache` whose map arrays are
+memory-mapped (`map_store`); several caches stacked as one (`stack_caches`) and checked
+against a config (`check_compatible`).
 """
 
 from __future__ import annotations
@@ -10,22 +10,27 @@ import dataclasses
 import json
 import math
 import os
-import tokenize
-import zipfile
+import shlex
 from collections.abc import Iterable, Sequence
 
 import numpy as np
 
-from scenegen_jax.config import Config
+from scenegen_jax.config import PRESETS, Config, GridConfig
 from scenegen_jax.data.cache_layout import (
     ACTOR_FIELDS,
+    CACHE_VERSION,
+    RASTER_FILE,
     READABLE_VERSIONS,
     SHARD_RE,
+    UNREADABLE_ARRAY,
     canvas_radius,
 )
+from scenegen_jax.data.map_store import FRAME_FIELDS, MapStore, StackedMapStore, load_map_store
+from scenegen_jax.frame import MAX_WORLD_M, within_world
 from scenegen_jax.jsonfile import read_json
 from scenegen_jax.raster.map import ALL_MAP_CHANNELS
 from scenegen_jax.scene import Actors, in_region, make_ego
+from scenegen_jax.vector_map import VectorMap
 
 # Each array of actors.npz: numpy dtype kinds it may have, and its shape after the scene axis
 # ("A": the actor slots).
@@ -45,36 +50,14 @@ def actors_in_region(cache, cfg: Config) -> np.ndarray:
     )
 
 
-class StackedMaps:
-    """The memory-mapped `maps.npy` of several caches read as one [S, C, C, channels] array:
-    indexing reads only the scenes asked for."""
-
-    def __init__(self, maps: Sequence[np.ndarray], offsets: np.ndarray):
-        self._maps, self._offsets = list(maps), offsets
-        self.shape = (int(offsets[-1]), *maps[0].shape[1:])
-        self.dtype = maps[0].dtype
-
-    def __len__(self) -> int:
-        return self.shape[0]
-
-    def __getitem__(self, index):
-        if isinstance(index, (int, np.integer)):
-            i = int(index) + (self.shape[0] if index < 0 else 0)
-            if not 0 <= i < self.shape[0]:
-                raise IndexError(f"scene {index} out of range [0, {self.shape[0]})")
-            c = int(np.searchsorted(self._offsets, i, side="right")) - 1
-            return self._maps[c][i - self._offsets[c]]
-        rows = np.arange(self.shape[0])[index]
-        return np.stack([self[int(i)] for i in np.atleast_1d(rows)])
-
-
 @dataclasses.dataclass
 class Cache:
-    """A loaded cache: map canvases (memory-mapped) and actor arrays."""
+    """A loaded cache: its vector maps (`map_store.MapStore`, arrays memory-mapped) and actor
+    arrays."""
 
     path: str
     meta: dict
-    maps: np.ndarray | StackedMaps  # float16 [S, C, C, len(ALL_MAP_CHANNELS)]
+    map_store: MapStore | StackedMapStore  # `frame_map(i)`: scene i's map, ego frame
     actors: Actors  # numpy fields [S, A]
     ego_velocity: np.ndarray  # [S, 2] m/s
     ego_size: np.ndarray  # [S, 2] m
@@ -102,19 +85,6 @@ class Cache:
         check_compatible([self], cfg)
 
 
-# What np.load raises on a truncated or damaged .npy / .npz: a header that is cut or no
-# Python literal fails in numpy's header parser with SyntaxError or tokenize.TokenError.
-_UNREADABLE_ARRAY = (
-    ValueError,
-    OSError,
-    EOFError,
-    SyntaxError,
-    TypeError,
-    tokenize.TokenError,
-    zipfile.BadZipFile,
-)
-
-
 def shard_folders(path: str) -> list[str]:
     """Names of the `prepare --shard` folders in `path`, sorted (none if it is no folder)."""
     if not os.path.isdir(path):
@@ -137,7 +107,14 @@ def load_cache(path: str) -> Cache:
     meta = read_json(meta_path)
     if not isinstance(meta, dict) or not isinstance(meta.get("scene_ids"), list):
         raise ValueError(f"{meta_path}: field scene_ids: missing or not a list")
-    if meta.get("version") not in READABLE_VERSIONS:
+    version = meta.get("version")
+    if isinstance(version, int) and not isinstance(version, bool) and version < CACHE_VERSION:
+        raise ValueError(
+            f"{meta_path}: field version: {version}: the cache holds raster canvases "
+            f"({RASTER_FILE}) of an older scenegen, which this one (cache version "
+            f"{CACHE_VERSION}) does not read; rewrite it with `{prepare_command(path, meta)}`"
+        )
+    if version not in READABLE_VERSIONS:
         raise ValueError(
             f"{meta_path}: field version: {meta.get('version')}, this scenegen reads "
             f"{list(READABLE_VERSIONS)} (a cache of another version of scenegen: re-run "
@@ -148,45 +125,86 @@ def load_cache(path: str) -> Cache:
             f"{meta_path}: field channels: cache channels differ from this "
             "version's (re-run scenegen prepare)"
         )
-    maps_path = os.path.join(path, "maps.npy")
-    try:
-        maps = np.load(maps_path, mmap_mode="r", allow_pickle=False)
-    except _UNREADABLE_ARRAY as e:  # truncated or not an .npy file
-        raise ValueError(f"{maps_path}: unreadable map canvases ({e}); re-run prepare") from e
     npz_path = os.path.join(path, "actors.npz")
     try:
         with np.load(npz_path, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
-    except _UNREADABLE_ARRAY as e:
+    except UNREADABLE_ARRAY as e:
         raise ValueError(f"{npz_path}: unreadable actor arrays ({e}); re-run prepare") from e
-    if meta["version"] < 4 and "size_measured" not in data:
-        data["size_measured"] = np.ones_like(data.get("valid", np.zeros((0, 0), bool)), bool)
-    missing = [k for k in (*ACTOR_FIELDS, "ego_velocity", "ego_size") if k not in data]
+    missing = [k for k in (*ACTOR_FIELDS, "ego_velocity", "ego_size", "city_from_ego",
+                           *FRAME_FIELDS) if k not in data]
     if missing:
         raise ValueError(f"{npz_path}: missing field(s) {missing}")
     n = len(meta["scene_ids"])
     for k, v in data.items():
         if v.ndim == 0 or v.shape[0] != n:
             raise ValueError(f"{npz_path}: field {k}: {v.shape[:1]} scenes, meta.json has {n}")
-    _check_layout(meta, meta_path, maps, maps_path, data, npz_path)
+    _check_layout(meta, meta_path, data, npz_path)
     actors = Actors(**{k: data[k] for k in ACTOR_FIELDS})
     actors.validate(f"{npz_path}: actors")
     _check_places_and_egos(meta, data, npz_path)
+    map_store = load_map_store(path, meta, meta_path, {k: data[k] for k in FRAME_FIELDS},
+                               npz_path, data["city_from_ego"])
     return Cache(
         path=path,
         meta=meta,
-        maps=maps,
+        map_store=map_store,
         actors=actors,
         ego_velocity=data["ego_velocity"],
         ego_size=data["ego_size"],
-        city_from_ego=data.get("city_from_ego", np.tile(np.eye(3), (n, 1, 1))),
+        city_from_ego=data["city_from_ego"],
     )
 
 
-def _check_layout(meta, meta_path, maps, maps_path, data, npz_path) -> None:
+def prepare_command(path: str, meta: dict) -> str:
+    """The `scenegen prepare` command that rewrites the cache at `path` from the source and
+    config its meta.json records (placeholders where it records none)."""
+    source = meta.get("source") if isinstance(meta.get("source"), dict) else {}
+    out = path
+    args = ["scenegen", "prepare", "--source", str(source.get("kind") or "<source kind>"),
+            "--root", str(source.get("root") or "<data root>")]
+    if source.get("split"):
+        args += ["--split", str(source["split"])]
+    if source.get("stride"):
+        args += ["--stride", str(source["stride"])]
+    config = meta.get("config") if isinstance(meta.get("config"), dict) else {}
+    name = config.get("name")
+    if name in PRESETS:
+        args += ["--config", name]
+        overrides = _grid_overrides(config, PRESETS[name], f"{path}/meta.json")
+        if overrides:
+            args += ["--set", *overrides]
+    shard = source.get("shard")
+    if isinstance(shard, list) and len(shard) == 2:
+        args += ["--shard", f"{shard[0]}/{shard[1]}"]
+        out = os.path.dirname(os.path.normpath(path))  # prepare writes OUT/shard-I-of-N
+    return shlex.join([*args, "--out", out])
+
+
+def _grid_overrides(config: dict, preset: Config, source: str) -> list[str]:
+    """`--set FIELD=VALUE` of the grid fields in which a cache's recorded config differs from
+    its preset ([] when it does not, or cannot be read)."""
+    try:
+        saved = Config.from_json(json.dumps(config), source).flat()
+    except ValueError:
+        return []
+    want = preset.flat()
+
+    def text(value) -> str:
+        if isinstance(value, bool):
+            return str(value).lower()
+        if isinstance(value, tuple):
+            return ",".join(map(str, value)) or "none"
+        return str(value)
+
+    return [f"{f.name}={text(saved[f.name])}" for f in dataclasses.fields(GridConfig)
+            if saved[f.name] != want[f.name]]
+
+
+def _check_layout(meta, meta_path, data, npz_path) -> None:
     """Raises ValueError naming the file and field where an array's dtype or shape is not the
     cache layout's (module docstring; `ARRAY_LAYOUT`)."""
-    slots, canvas = meta.get("slots"), meta.get("canvas_size")
+    slots = meta.get("slots")
     for field in ("slots", "canvas_size", "grid_size"):
         value = meta.get(field)
         if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
@@ -204,9 +222,20 @@ def _check_layout(meta, meta_path, maps, maps_path, data, npz_path) -> None:
                 f"{npz_path}: field {k}: {data[k].dtype} {data[k].shape}, expected "
                 f"{_KIND_NAMES[kinds]} {want}"
             )
-    want = (n, canvas, canvas, len(ALL_MAP_CHANNELS))
-    if maps.dtype.kind != "f" or maps.shape != want:
-        raise ValueError(f"{maps_path}: {maps.dtype} {maps.shape}, expected float {want}")
+    pose = data["city_from_ego"]
+    if pose.dtype.kind != "f" or pose.shape != (n, 3, 3):
+        raise ValueError(f"{npz_path}: field city_from_ego: {pose.dtype} {pose.shape}, "
+                         f"expected float {(n, 3, 3)}")
+    if not np.all(np.isfinite(pose)):
+        raise ValueError(f"{npz_path}: field city_from_ego: NaN or inf")
+    rot = pose[:, :2, :2]
+    with np.errstate(over="ignore", invalid="ignore"):
+        skew = np.abs(rot @ np.swapaxes(rot, 1, 2) - np.eye(2)).max(axis=(1, 2), initial=0.0)
+    bad = ~(skew <= 1e-6) | ~within_world(pose[:, :2, 2]) | np.any(pose[:, 2] != (0, 0, 1), 1)
+    if bad.any():
+        raise ValueError(f"{npz_path}: field city_from_ego: scene {int(np.flatnonzero(bad)[0])}: "
+                         f"not an SE(2) pose (a rotation, then a translation within "
+                         f"{MAX_WORLD_M:g} m)")
 
 
 def _check_places_and_egos(meta, data, npz_path) -> None:
@@ -299,14 +328,14 @@ def _pad_slots(x: np.ndarray, slots: int) -> np.ndarray:
 def stack_caches(caches: Sequence[Cache], path: str, meta: dict) -> Cache:
     """Several caches read as one `Cache` (called `path`, with `meta`): their scenes in order,
     actor arrays padded to the largest slot count and concatenated, maps memory-mapped per
-    cache (`StackedMaps`). Shards of a cache and a `CacheUnion`'s members both use it."""
+    cache (`StackedMapStore`). Shards of a cache and a `CacheUnion`'s members both use it."""
     slots = max(c.actors.cls.shape[1] for c in caches)
     offsets = np.concatenate([[0], np.cumsum([len(c) for c in caches])]).astype(np.int64)
     cat = lambda get: np.concatenate([get(c) for c in caches])  # noqa: E731
     return Cache(
         path=path,
         meta=meta,
-        maps=StackedMaps([c.maps for c in caches], offsets),
+        map_store=StackedMapStore([c.map_store for c in caches], offsets),
         actors=Actors(
             **{k: cat(lambda c, k=k: _pad_slots(getattr(c.actors, k), slots)) for k in ACTOR_FIELDS}
         ),
@@ -319,7 +348,7 @@ def stack_caches(caches: Sequence[Cache], path: str, meta: dict) -> Cache:
 def check_compatible(caches: Iterable[Cache], cfg: Config) -> None:
     """Raises ValueError naming the cache and the field unless every cache has `cfg`'s grid
     (grid_size, m_per_px, canvas_size) and the map channels the config reads, and all share
-    one channel layout (so that their canvases stack and train together)."""
+    one channel layout (so that their rasters stack and train together)."""
     caches = list(caches)
     want = {
         "grid_size": cfg.grid.grid_size,
@@ -329,7 +358,7 @@ def check_compatible(caches: Iterable[Cache], cfg: Config) -> None:
     hint = f"re-run prepare with --config {cfg.name} (and the same --set overrides)"
     for cache in caches:
         for field, value in want.items():
-            got = cache.meta.get(field, cache.maps.shape[1] if field == "canvas_size" else None)
+            got = cache.meta.get(field)
             if got != value:
                 raise ValueError(
                     f"{cache.path}: field {field}: cache has {got}, config "
@@ -347,16 +376,11 @@ def check_compatible(caches: Iterable[Cache], cfg: Config) -> None:
             raise ValueError(
                 f"{cache.path}: field channels: {channels} differ from {caches[0].path}'s {first}"
             )
-        if cache.maps.shape[-1] != len(channels):
-            raise ValueError(
-                f"{cache.path}/maps.npy: {cache.maps.shape[-1]} channels, "
-                f"meta.json lists {len(channels)}"
-            )
 
 
-def cached_scene(cache: Cache, index: int, cfg: Config) -> tuple[np.ndarray, Actors, Actors]:
-    """(map canvas, cached actors [A], ego) of scene `index`, as numpy."""
+def cached_scene(cache: Cache, index: int, cfg: Config) -> tuple[VectorMap, Actors, Actors]:
+    """(vector map in the ego frame, cached actors [A], ego) of scene `index`, as numpy."""
     if not 0 <= index < len(cache):
         raise IndexError(f"{cache.path}: scene index {index} out of range [0, {len(cache)})")
     actors = Actors(**{k: getattr(cache.actors, k)[index] for k in ACTOR_FIELDS})
-    return np.asarray(cache.maps[index]), actors, cache.ego(index)
+    return cache.map_store.frame_map(index), actors, cache.ego(index)

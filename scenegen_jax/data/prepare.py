@@ -1,9 +1,10 @@
-"""`prepare`: a source's files -> a cache, read and rasterized in a process pool.
+"""`prepare`: a source's files -> a cache, read and encoded in a process pool.
 
 Each file (an Argoverse 2 log, a ScenarioNet pickle, a GPUDrive JSON scenario) is read and
-its frames rasterized in a worker; the parent writes them in file order, so the cache does
-not depend on the number of workers. A file that cannot be read is skipped and counted under
-its reason (`Summary.bad_files`, file names in `bad_file_list` and the log), unless `strict`.
+its frames encoded in a worker (actors padded, map elements moved to the world frame); the
+parent writes them in file order, so the cache does not depend on the number of workers. A
+file that cannot be read is skipped and counted under its reason (`Summary.bad_files`, file
+names in `bad_file_list` and the log), unless `strict`.
 """
 
 from __future__ import annotations

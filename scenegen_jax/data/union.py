@@ -1,5 +1,5 @@
 """Several caches of the same config read as one (`CacheUnion`): scene indices run over the
-caches in the order given; maps stay memory-mapped per cache."""
+caches in the order given; map arrays stay memory-mapped per cache."""
 
 from __future__ import annotations
 
@@ -12,12 +12,12 @@ import numpy as np
 from scenegen_jax.config import Config
 from scenegen_jax.data.cache import (
     Cache,
-    StackedMaps,
     check_compatible,
     load_cache,
     stack_caches,
 )
 from scenegen_jax.data.cache_layout import ACTOR_FIELDS
+from scenegen_jax.data.map_store import MapStore, StackedMapStore
 from scenegen_jax.scene import Actors, make_ego
 
 
@@ -38,16 +38,17 @@ def source_labels(caches: Sequence[Cache]) -> list[str]:
 class CacheUnion:
     """Several caches read as one: the fields of a `Cache` over all their scenes (cache 0's
     scenes first), so `gather_batch`, `score_cache` and `cached_scene` take it as they take
-    a cache. Maps stay memory-mapped per cache; actor arrays are padded to the largest slot
-    count and concatenated (the members' actors are views into them). One cache is its own
-    union, with its arrays as they are."""
+    a cache. Map arrays stay memory-mapped per cache (`map_store.frame_map(i)` reads scene
+    i's map from its member); actor arrays are padded to the largest slot count and
+    concatenated (the members' actors are views into them). One cache is its own union, with
+    its arrays as they are."""
 
     members: list[Cache]
     offsets: np.ndarray  # [N + 1] first scene of each member, then the total
     labels: list[str]  # `source_labels`
     path: str
     meta: dict
-    maps: np.ndarray | StackedMaps
+    map_store: MapStore | StackedMapStore
     actors: Actors
     ego_velocity: np.ndarray
     ego_size: np.ndarray
@@ -63,7 +64,7 @@ class CacheUnion:
         labels = source_labels(caches)
         if len(caches) == 1:
             c = caches[0]
-            return cls(caches, offsets, labels, c.path, c.meta, c.maps, c.actors,
+            return cls(caches, offsets, labels, c.path, c.meta, c.map_store, c.actors,
                        c.ego_velocity, c.ego_size, c.city_from_ego)
         slots = max(c.actors.cls.shape[1] for c in caches)
         first = caches[0].meta
@@ -84,7 +85,7 @@ class CacheUnion:
                 actors=Actors(**{k: getattr(whole.actors, k)[a:b] for k in ACTOR_FIELDS}),
                 **{k: v[a:b] for k, v in per_scene.items()},
             ))
-        return cls(members, offsets, labels, whole.path, meta, whole.maps, whole.actors,
+        return cls(members, offsets, labels, whole.path, meta, whole.map_store, whole.actors,
                    **per_scene)
 
     def __len__(self) -> int:

@@ -12,13 +12,13 @@ import numpy as np
 from tqdm import tqdm
 
 from scenegen_jax.config import Config
-from scenegen_jax.data.cache import Cache, cached_scene
+from scenegen_jax.data.cache import Cache
 from scenegen_jax.data.sources import read_frames
 from scenegen_jax.eval import baselines
 from scenegen_jax.eval.mmd import mmd_table
 from scenegen_jax.eval.nll import score_cache, summarize_by_source, summarize_scores
-from scenegen_jax.eval.realism import realism_stats
-from scenegen_jax.raster.transform import scene_from_cached
+from scenegen_jax.eval.realism import map_canvases, realism_stats
+from scenegen_jax.likelihood.batch import grid_scene
 from scenegen_jax.sampling.batch import sample_scenes, seed_key
 from scenegen_jax.sampling.rollout import DEFAULT_OPTIONS, SamplerOptions
 
@@ -30,12 +30,8 @@ MMD_ROWS = ("class/all", "area/all", "speed/all", "heading/all", "area/vehicle",
 
 def real_scenes(cache: Cache, indices, cfg: Config):
     """(maps [B,H,W,C], Scenes) of cached scenes, unrotated, as numpy."""
-    maps, scenes = [], []
-    for i in indices:
-        m, scene, _ = scene_from_cached(*cached_scene(cache, int(i), cfg), 0.0, cfg.grid)
-        maps.append(np.asarray(m))
-        scenes.append(jax.tree.map(np.asarray, scene))
-    return np.stack(maps), scenes
+    maps, scenes = zip(*(grid_scene(cache, int(i), cfg.grid) for i in indices), strict=True)
+    return np.stack(maps), list(scenes)
 
 
 def sample_scenegen(params, cfg: Config, maps, scenes, seed: int, batch_size: int = 8,
@@ -105,7 +101,7 @@ def evaluate(params, cfg: Config, cache: Cache, train_cache: Cache, num_scenes: 
     generated["SceneGen"] = sample_scenegen(params, cfg, maps, scenes, seed, options=options)
     real = [s.actors for s in scenes]
     mmd = {m: mmd_table(real, generated[m], region_m=cfg.grid.region_m) for m in METHODS}
-    canvases = [np.asarray(cached_scene(cache, int(i), cfg)[0]) for i in indices]
+    canvases = list(map_canvases(cache, indices, cfg))
     realism = {m: realism_stats(canvases, generated[m], cfg) for m in METHODS}
     realism["real"] = realism_stats(canvases, real, cfg)
     return {"nll": nll, "nll_by_source": nll_by_source, "mmd": mmd, "realism": realism,

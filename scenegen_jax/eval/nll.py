@@ -6,7 +6,6 @@ import functools
 import sys
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
@@ -22,7 +21,7 @@ from scenegen_jax.backend import (
 from scenegen_jax.config import Config, ModelConfig
 from scenegen_jax.data.cache import Cache
 from scenegen_jax.distributions import TERMS
-from scenegen_jax.likelihood.batch import Batch, check_batch, crop_batch, gather_batch, to_device
+from scenegen_jax.likelihood.batch import Batch, batch_scenes, check_batch, gather_batch, to_device
 from scenegen_jax.likelihood.terms import step_size_measured
 from scenegen_jax.likelihood.unroll import unroll_terms
 from scenegen_jax.scene import CLASS_NAMES, PEDESTRIAN, STOP
@@ -31,7 +30,7 @@ from scenegen_jax.scene import CLASS_NAMES, PEDESTRIAN, STOP
 def score_batch(params, batch: Batch, cfg: ModelConfig) -> dict:
     """Per-step NLL terms of a batch: dict term -> [B, T] (nats), plus step class and mask,
     and whether the step's actor had a measured box size (`Actors.size_measured`)."""
-    maps, scene = crop_batch(batch, jnp.zeros(batch.actors.cls.shape[0]), cfg.grid)
+    maps, scene = batch_scenes(batch, cfg.grid)
     terms, step_valid, step_cls = unroll_terms(params, cfg, maps, scene, None,
                                                differentiated=False)
     out = {k: -v for k, v in terms.items()}

@@ -5,6 +5,7 @@ SceneGen samples and both baselines on the same maps)."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from typing import NamedTuple
 
 import jax
@@ -12,10 +13,24 @@ import numpy as np
 
 from scenegen_jax.config import Config
 from scenegen_jax.geometry import boxes_overlap
+from scenegen_jax.raster.jax_map import draw_maps
 from scenegen_jax.raster.map import ALL_MAP_CHANNELS, NEAREST_LANE_CHANNELS, ORIENTATION_CHANNELS
 from scenegen_jax.scene import CLASS_NAMES, PEDESTRIAN, VEHICLE
 
 LANE_TOLERANCE_DEG = 20.0  # a vehicle on a lane is aligned within this of its direction
+CANVAS_BATCH = 16  # canvases drawn per call (`map_canvases`)
+
+
+def map_canvases(cache, indices, cfg: Config) -> Iterator[np.ndarray]:
+    """Unrotated canvases [C, C, len(ALL_MAP_CHANNELS)] (C = `GridConfig.canvas_size`: the
+    disc of every vehicle within 40 m of the ego on it) of the cached scenes `indices`, one
+    after the other (drawn `CANVAS_BATCH` at a time)."""
+    indices = [int(i) for i in indices]
+    for lo in range(0, len(indices), CANVAS_BATCH):
+        chunk = indices[lo : lo + CANVAS_BATCH]
+        drawn = draw_maps([cache.map_store.frame_map(i) for i in chunk], np.zeros(len(chunk)),
+                          cfg.grid, cfg.grid.canvas_size, ALL_MAP_CHANNELS)
+        yield from np.asarray(drawn)
 
 
 def _vehicle_pixels(canvas: np.ndarray, actors, cfg: Config, radius_m: float):
@@ -169,10 +184,10 @@ def real_data_check(cache, cfg: Config, moving_mps: float = 2.0) -> dict:
     on = total = moving_on = moving_total = 0
     lengths, per_scenario = [], {}
     a = cache.actors
-    for i in range(len(cache)):
+    canvases = map_canvases(cache, range(len(cache)), cfg)
+    for i, canvas in enumerate(canvases):
         sel = np.asarray(a.valid[i]) & (np.asarray(a.cls[i]) == VEHICLE)
         sub = jax.tree.map(lambda x, i=i: np.asarray(x[i]), a)
-        canvas = np.asarray(cache.maps[i], np.float32)
         o, t = drivable_share(canvas, sub, cfg)
         on, total = on + o, total + t
         moving = sub.valid & (np.linalg.norm(sub.velocity, axis=1) > moving_mps)

@@ -1,5 +1,5 @@
-"""A batch of cached scenes as the unroll reads it: gathered on the host, checked, put on
-device(s), rotated and cropped."""
+"""A batch of cached scenes as the unroll reads it: actors gathered on the host, maps drawn
+at the batch's rotations (`raster.jax_map`), checked, put on device(s)."""
 
 from __future__ import annotations
 
@@ -14,27 +14,42 @@ from scenegen_jax.config import GridConfig
 from scenegen_jax.data.cache import Cache
 from scenegen_jax.data.cache_layout import ACTOR_FIELDS
 from scenegen_jax.data.union import CacheUnion
+from scenegen_jax.raster.jax_map import draw_maps
 from scenegen_jax.raster.transform import scene_from_cached
 from scenegen_jax.scene import Actors
 
 
 class Batch(NamedTuple):
-    """A batch as read from the cache (before rotation and cropping).
+    """A batch of cached scenes, each rotated by its theta about the ego.
 
-    canvas: float16 [B, S, S, C_all] map canvases; actors: Actors [B, A]; ego: Actors [B].
+    maps: float32 [B, H, W, C] the grid's map channels, drawn at the rotations;
+    thetas: float32 [B] rad; actors: Actors [B, A] as cached (unrotated); ego: Actors [B].
     """
 
-    canvas: Any
+    maps: Any
+    thetas: Any
     actors: Actors
     ego: Actors
 
 
-def gather_batch(cache: Cache | CacheUnion, indices: np.ndarray, grid: GridConfig) -> Batch:
-    """Host arrays of the scenes `indices` (canvas kept in float16)."""
+def gather_batch(cache: Cache | CacheUnion, indices: np.ndarray, grid: GridConfig,
+                 thetas=None) -> Batch:
+    """The scenes `indices` rotated by `thetas` [B] rad (default 0): actors as host arrays,
+    maps drawn on the default device from the cached vector maps."""
     indices = np.asarray(indices)
+    thetas = np.zeros(len(indices), np.float32) if thetas is None else np.asarray(
+        thetas, np.float32)
     actors = Actors(**{k: np.asarray(getattr(cache.actors, k)[indices]) for k in ACTOR_FIELDS})
-    canvas = np.stack([np.asarray(cache.maps[i]) for i in indices])
-    return Batch(canvas=canvas, actors=actors, ego=cache.ego(indices))
+    maps = draw_maps([cache.map_store.frame_map(int(i)) for i in indices], thetas, grid)
+    return Batch(maps=maps, thetas=thetas, actors=actors, ego=cache.ego(indices))
+
+
+def grid_scene(cache: Cache | CacheUnion, index: int, grid: GridConfig, theta: float = 0.0):
+    """(map [H, W, C], Scene) of one cached scene rotated by theta, as numpy."""
+    if not 0 <= index < len(cache):
+        raise IndexError(f"{cache.path}: scene index {index} out of range [0, {len(cache)})")
+    maps, scene = batch_scenes(gather_batch(cache, np.array([index]), grid, [theta]), grid)
+    return np.asarray(maps[0]), jax.tree.map(lambda x: np.asarray(x[0]), scene)
 
 
 def local_rows(sharding, batch_size: int) -> slice:
@@ -65,16 +80,17 @@ def to_device(batch: Batch, sharding=None, batch_size: int | None = None) -> Bat
         return jax.tree.map(lambda x: jax.device_put(x, sharding), batch)
     return jax.tree.map(
         lambda x: jax.make_array_from_process_local_data(
-            sharding, x, (batch_size,) + x.shape[1:]
+            sharding, np.asarray(x), (batch_size,) + x.shape[1:]
         ),
         batch,
     )
 
 
 def check_batch(batch: Batch, scene_ids: list[str]) -> None:
-    """Host-side guard: raises ValueError naming the scene and field on NaN/inf input."""
+    """Host-side guard: raises ValueError naming the scene and field on NaN/inf input. The
+    maps are not read back: they are drawn from map points the cache checked finite when it
+    was loaded, and reading them would wait for the device."""
     fields = {
-        "canvas": batch.canvas,
         "actors.position": batch.actors.position,
         "actors.size": batch.actors.size,
         "actors.heading": batch.actors.heading,
@@ -91,12 +107,13 @@ def check_batch(batch: Batch, scene_ids: list[str]) -> None:
 
 
 @functools.partial(jax.jit, static_argnames="grid")
-def crop_batch(batch: Batch, thetas, grid: GridConfig):
-    """Rotates each cached scene by thetas [B] rad and crops it: (maps [B,H,W,C], scene).
+def batch_scenes(batch: Batch, grid: GridConfig):
+    """(maps [B,H,W,C], scenes): each cached scene's actors rotated by its theta and kept to
+    the grid's region (`scene_from_cached`).
 
     Jitted: called outside a compiled program, its operations would each compile on their
     own."""
-    maps, scene, _ = jax.vmap(lambda c, a, e, t: scene_from_cached(c, a, e, t, grid))(
-        batch.canvas, batch.actors, batch.ego, thetas
+    scene, _ = jax.vmap(lambda a, e, t: scene_from_cached(a, e, t, grid))(
+        batch.actors, batch.ego, batch.thetas
     )
-    return maps, scene
+    return batch.maps, scene

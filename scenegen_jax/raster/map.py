@@ -1,8 +1,10 @@
-"""Map rasterization (host side, shapely 2 vectorised predicates) into named channels.
+"""The reference map rasteriser (host side, shapely 2 vectorised predicates): the named map
+channels of a vector map. The model's rasters are drawn by `raster.jax_map` where the model
+runs; the tests hold the two equal on real maps.
 
 Rasters follow the convention documented in `scenegen_jax.scene`. Polygons are sampled at
 pixel centres; polylines (centrelines, painted boundaries) are buffered to at least half a
-pixel so they are never missed at coarse resolutions.
+pixel (`line_half_width`) so they are never missed at coarse resolutions.
 """
 
 from __future__ import annotations
@@ -26,6 +28,11 @@ NEAREST_LANE_MAX_M = 30.0
 # Side of the pixel blocks of the nearest-centreline search (`_nearest_segments`), m.
 NEAREST_BLOCK_M = 1.5
 LINE_HALF_WIDTH_M = 0.15  # painted line / centreline half width before pixel padding
+
+
+def line_half_width(m_per_px: float) -> float:
+    """Half width (m) lines are drawn at: at least half a pixel, so none is missed."""
+    return max(LINE_HALF_WIDTH_M, 0.5 * m_per_px)
 
 
 @functools.lru_cache(maxsize=8)
@@ -60,7 +67,7 @@ def rasterize_map(vmap: VectorMap, size: int, m_per_px: float) -> np.ndarray:
     vmap = vmap.crop(np.zeros(2), half + NEAREST_LANE_MAX_M)
     lines = [lane.centerline for lane in vmap.lanes]
     roi = shapely.box(-half, -half, half, half)
-    line_buffer = max(LINE_HALF_WIDTH_M, 0.5 * m_per_px)
+    line_buffer = line_half_width(m_per_px)
     channels = {c: np.zeros(n, np.float32) for c in ALL_MAP_CHANNELS}
     tree = shapely.STRtree(points)
     hit_points = functools.partial(_hit_points, tree, roi)

@@ -29,7 +29,7 @@ from scenegen_jax.backend import (
     sampling_compiler_options,
 )
 from scenegen_jax.config import Config, ModelConfig
-from scenegen_jax.raster.transform import crop_map
+from scenegen_jax.raster.jax_map import draw_maps
 from scenegen_jax.sampling.model import Model, NetworkModel
 from scenegen_jax.sampling.rollout import (
     DEFAULT_OPTIONS,
@@ -313,8 +313,8 @@ def sample_scenes(
     h = cfg.grid.grid_size
     if maps.ndim != 4 or tuple(maps.shape[1:]) != (h, h, len(cfg.grid.map_channels)):
         raise ValueError(f"maps: shape {tuple(maps.shape)}, config {cfg.name!r} needs [B, {h}, "
-                         f"{h}, {len(cfg.grid.map_channels)}] (a cache canvas is cropped first: "
-                         "`raster.transform.crop_map`)")
+                         f"{h}, {len(cfg.grid.map_channels)}] (`raster.jax_map.draw_maps` draws "
+                         "them from vector maps)")
     if np.shape(egos.cls)[:1] != (b,):
         raise ValueError(f"egos: {np.shape(egos.cls)[:1]} rows for {b} maps")
     if num_per_map < 1:
@@ -394,15 +394,12 @@ def sample_on_cache(
 
 def _sample_on_cache(params, cfg: Config, cache, key, scenes: range, indices: list[int], given,
                      caps, batch_size: int, options: SamplerOptions) -> Iterator[CacheScene]:
-    crop = jax.jit(crop_map, static_argnums=2)
     maps: dict[int, np.ndarray] = {}
 
     def map_of(i: int) -> np.ndarray:
         if i not in maps:
-            if not np.isfinite(cache.maps[i]).all():
-                raise ValueError(f"scene {cache.scene_name(i)}: field canvas: NaN or inf in "
-                                 "the map")
-            maps[i] = np.asarray(crop(jnp.asarray(cache.maps[i]), 0.0, cfg.grid))
+            drawn = draw_maps([cache.map_store.frame_map(i)], np.zeros(1), cfg.grid)
+            maps[i] = np.asarray(drawn[0])
         return maps[i]
 
     for start in range(scenes.start, scenes.stop, batch_size):

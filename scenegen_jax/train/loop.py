@@ -36,6 +36,7 @@ from scenegen_jax.train.step import (
     make_optimizer,
     resolve_remat,
     start_ema,
+    step_rotations,
 )
 from scenegen_jax.train.warm_start import reframed, start_params, warm_start
 from scenegen_jax.workdir import (
@@ -219,10 +220,11 @@ def _progress_bar(steps: int, start: int, progress: bool, max_seconds: float | N
     )
 
 
-def _device_batch(cache: CacheUnion, indices: np.ndarray, cfg: Config,
+def _device_batch(cache: CacheUnion, indices: np.ndarray, thetas: np.ndarray, cfg: Config,
                   data_sharding: NamedSharding):
-    """This process's rows `indices` of a global batch, checked, on its devices."""
-    host = gather_batch(cache, indices, cfg.grid)
+    """This process's rows `indices` of a global batch at rotations `thetas`, checked, on its
+    devices."""
+    host = gather_batch(cache, indices, cfg.grid, thetas)
     check_batch(host, [cache.scene_name(i) for i in indices])
     return to_device(host, data_sharding, cfg.train.batch_size)
 
@@ -351,11 +353,15 @@ def _train(cfg: Config, cache: CacheUnion, workdir: str, steps: int, save_every:
     metrics_path = os.path.join(workdir, "metrics.jsonl")
     drop_metrics_after(metrics_path, start)
     bar = _progress_bar(steps, start, progress, max_seconds)
+    rotations = jax.jit(step_rotations, static_argnums=(2, 3))
+    key_data = np.asarray(jax.device_get(state.key))
     t_start = time.perf_counter()
     for step in range(start, steps):
         raise_pending()  # a Ctrl-C or SIGTERM whose exception Python swallowed
         indices = union_indices(cache, shares, cfg.train.batch_size, cfg.train.seed, step)[rows]
-        batch = _device_batch(cache, indices, cfg, data_sharding)
+        thetas = np.asarray(rotations(key_data, step, cfg.train.batch_size,
+                                      cfg.train.rotate_augment))[rows]
+        batch = _device_batch(cache, indices, thetas, cfg, data_sharding)
         if step_fn is None:  # remat resolved once, for the programs the run compiles
             step_cfg = resolve_remat(cfg, cfg.train.batch_size // mesh.size)
             step_fn = train_step_for_run(step_cfg, state, batch, mesh, steps - step)

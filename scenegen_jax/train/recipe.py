@@ -10,6 +10,8 @@ import sys
 from tqdm import tqdm
 
 from scenegen_jax.config import Config, get_config
+from scenegen_jax.data.cache_layout import CACHE_VERSION
+from scenegen_jax.jsonfile import read_json
 from scenegen_jax.recipes import Recipe, Run
 from scenegen_jax.train.loop import train
 from scenegen_jax.workdir import check_model_target, has_checkpoint, load_params
@@ -22,10 +24,20 @@ def cache_path(recipe: Recipe, cache_dir: str, name: str) -> str:
     return os.path.abspath(os.path.join(cache_dir, f"{recipe.config}_{name}"))
 
 
+def _current_cache(path: str) -> bool:
+    """Whether `path` holds a cache of this scenegen's version."""
+    meta_path = os.path.join(path, "meta.json")
+    if not os.path.isfile(meta_path):
+        return False
+    meta = read_json(meta_path)
+    return isinstance(meta, dict) and meta.get("version") == CACHE_VERSION
+
+
 def prepare_caches(recipe: Recipe, cache_dir: str, data_root: str, names=None,
                    workers: int | None = None) -> dict[str, str]:
-    """Prepares each of the recipe's caches (or of `names`) that is not there yet; returns
-    name -> cache directory."""
+    """Prepares each of the recipe's caches (or of `names`) that is not there yet, or was
+    written by a scenegen whose cache version this one does not read; returns name -> cache
+    directory."""
     from scenegen_jax.data.prepare import prepare
     from scenegen_jax.data.sources import source_spec
 
@@ -34,7 +46,7 @@ def prepare_caches(recipe: Recipe, cache_dir: str, data_root: str, names=None,
     for name in names if names is not None else recipe.caches:
         spec = recipe.caches[name]
         path = cache_path(recipe, cache_dir, name)
-        if not os.path.isfile(os.path.join(path, "meta.json")):
+        if not _current_cache(path):
             source = source_spec(spec.source, os.path.join(data_root, spec.root), spec.split,
                                  spec.stride)
             with tqdm(desc=f"prepare {name}", unit="file", file=sys.stderr) as bar:

@@ -22,7 +22,7 @@ from scenegen_jax.backend import (
     train_compiler_options,
 )
 from scenegen_jax.config import LAYER_GROUPS, Config
-from scenegen_jax.likelihood.batch import Batch, crop_batch
+from scenegen_jax.likelihood.batch import Batch, batch_scenes
 from scenegen_jax.likelihood.grads import (
     unroll_terms_and_grads,
 )
@@ -175,19 +175,26 @@ def _psum_packed(tree, axis: str | None):
     return jax.tree.map(lambda x, y: y.astype(x.dtype), tree, summed)
 
 
+def step_rotations(key_data, step, batch_size: int, rotate: bool):
+    """float32 [batch_size] rotations (rad) of the global batch of step `step`: uniform over
+    [0, 2 pi) from the run's key (`TrainState.key`) and the step, 0 without `rotate`. The
+    loop draws them to draw the maps (`gather_batch`); a pure function of (key, step), so a
+    resumed run draws what an uninterrupted one would."""
+    if not rotate:
+        return jnp.zeros((batch_size,))
+    key = jax.random.fold_in(jax.random.wrap_key_data(key_data), step)
+    return jax.random.uniform(key, (batch_size,), maxval=2 * jnp.pi)
+
+
 def step_inputs(state: TrainState, batch: Batch, cfg: Config, axis: str | None):
-    """(maps, scene, global batch size, devices) of a step: the step's rotations (this
-    device's slice of them with `axis`), the crop, and map dropout."""
+    """(maps, scene, global batch size, devices) of a step: the batch's rotated scenes (this
+    device's part of them with `axis`) and map dropout."""
     key = jax.random.fold_in(jax.random.wrap_key_data(state.key), state.step)
     local = batch.actors.cls.shape[0]
     devices = 1 if axis is None else jax.lax.axis_size(axis)
     first = 0 if axis is None else jax.lax.axis_index(axis) * local
     b = local * devices  # the global batch: draws, and the mean over scenes, are over it
-    if cfg.train.rotate_augment:
-        thetas = jax.random.uniform(key, (b,), maxval=2 * jnp.pi)
-    else:
-        thetas = jnp.zeros((b,))
-    maps, scene = crop_batch(batch, jax.lax.dynamic_slice_in_dim(thetas, first, local), cfg.grid)
+    maps, scene = batch_scenes(batch, cfg.grid)
     if cfg.train.map_dropout > 0:
         keep = jax.random.uniform(jax.random.fold_in(key, 1), (b, 1, 1, 1)) >= cfg.train.map_dropout
         maps = maps * jax.lax.dynamic_slice_in_dim(keep, first, local)

@@ -51,12 +51,12 @@ def draw_scene(
     title: str | None = None,
 ) -> None:
     """Draws one scene on `ax` in metres (ego frame); `map_raster` [H, W, len(channels)] is
-    the config's grid (a cache canvas is cropped first: `raster.transform.crop_map`)."""
+    the config's grid (`raster.jax_map.draw_maps` draws it from a vector map)."""
     h = cfg.grid.grid_size
     if tuple(np.shape(map_raster)) != (h, h, len(channels)):
         raise ValueError(f"map_raster: shape {tuple(np.shape(map_raster))}, config {cfg.name!r} "
-                         f"needs [{h}, {h}, {len(channels)}] (a cache canvas is cropped first: "
-                         "`raster.transform.crop_map`)")
+                         f"needs [{h}, {h}, {len(channels)}] (`raster.jax_map.draw_maps` draws it "
+                         "from a vector map)")
     half = cfg.grid.region_m / 2
     ax.imshow(
         map_background(np.asarray(map_raster, np.float32), channels),
