@@ -123,6 +123,16 @@ class VectorMap:
             "lines": boxes([line.points for line in self.lines]),
         }
 
+    def marked_lines(self) -> list[tuple[np.ndarray, bool]]:
+        """(polyline [P, 2], crossable) of every painted line the map draws: the lanes' left
+        boundaries, their right ones, then the standalone lines (at least 2 points), each
+        with a painted mark (`is_crossable` not None)."""
+        marked = [(lane.left, lane.left_mark) for lane in self.lanes]
+        marked += [(lane.right, lane.right_mark) for lane in self.lanes]
+        marked += [(line.points, line.mark) for line in self.lines if len(line.points) >= 2]
+        return [(points, kind) for points, mark in marked
+                if (kind := is_crossable(mark)) is not None]
+
     def crop(self, center: np.ndarray, radius: float) -> VectorMap:
         """Keeps the elements with a point within `radius` m (box test) of `center`."""
         c = np.asarray(center, np.float64)

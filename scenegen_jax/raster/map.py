@@ -16,7 +16,7 @@ import shapely
 
 from scenegen_jax.config import ALL_LAYER_GROUPS, DATASETS, LAYER_GROUPS, GridConfig
 from scenegen_jax.scene import pixel_centers
-from scenegen_jax.vector_map import VectorMap, is_crossable
+from scenegen_jax.vector_map import VectorMap
 
 ALL_MAP_CHANNELS: tuple[str, ...] = tuple(c for g in ALL_LAYER_GROUPS for c in LAYER_GROUPS[g])
 ORIENTATION_CHANNELS = ("lane_orientation_cos", "lane_orientation_sin")
@@ -113,15 +113,8 @@ def _draw_lanes(channels: dict, hit_points, vmap: VectorMap, lane_polys: list, l
     centrelines = [shapely.LineString(line) for line in lines]
     channels["lane_centerline"][hit_points([c.buffer(line_buffer) for c in centrelines])[1]] = 1.0
     crossable, uncrossable = [], []
-    marked = [(lane.left, lane.left_mark) for lane in vmap.lanes]
-    marked += [(lane.right, lane.right_mark) for lane in vmap.lanes]
-    marked += [(line.points, line.mark) for line in vmap.lines if len(line.points) >= 2]
-    for line, mark in marked:
-        kind = is_crossable(mark)
-        if kind is not None:
-            (crossable if kind else uncrossable).append(
-                shapely.LineString(line).buffer(line_buffer)
-            )
+    for line, kind in vmap.marked_lines():
+        (crossable if kind else uncrossable).append(shapely.LineString(line).buffer(line_buffer))
     channels["lane_boundary_crossable"][hit_points(crossable)[1]] = 1.0
     channels["lane_boundary_uncrossable"][hit_points(uncrossable)[1]] = 1.0
 

@@ -17,7 +17,7 @@ from flax import struct
 
 from scenegen_jax.config import DATASETS
 from scenegen_jax.raster.map import NEAREST_LANE_MAX_M, line_half_width
-from scenegen_jax.vector_map import VectorMap, centerlines, is_crossable
+from scenegen_jax.vector_map import VectorMap, centerlines
 
 # Channels filled inside polygons, and drawn along lines, by bit / index.
 FILL_CHANNELS = (
@@ -107,14 +107,9 @@ def _lines(vmap: VectorMap, centres: list[np.ndarray]) -> tuple[list[np.ndarray]
     """(polyline [P, 2], `LINE_CHANNELS` index) of every drawn line: the lanes' centrelines
     (`centres`), then their painted boundaries and the standalone lines with a mark."""
     lines, chans = list(centres), [0] * len(centres)
-    marked = [(ln.left, ln.left_mark) for ln in vmap.lanes]
-    marked += [(ln.right, ln.right_mark) for ln in vmap.lanes]
-    marked += [(line.points, line.mark) for line in vmap.lines if len(line.points) >= 2]
-    for pts, mark in marked:
-        kind = is_crossable(mark)
-        if kind is not None:
-            lines.append(np.asarray(pts, np.float64))
-            chans.append(1 if kind else 2)
+    for pts, crossable in vmap.marked_lines():
+        lines.append(np.asarray(pts, np.float64))
+        chans.append(1 if crossable else 2)
     return lines, chans
 
 
