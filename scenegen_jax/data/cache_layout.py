@@ -23,16 +23,16 @@ Layout of a cache directory (S scenes, E stored map elements, P stored map point
                     range at it, ~1 km from its first point)
 
 An element (its kind, attributes and world points to 1e-4 m) is stored once however many
-frames hold it: the frames of one scenario or log share most of their map. The maps are
-rasterized when they are read (the map channels of `meta.json`'s `channels`).
+frames hold it: the frames of one scenario or log share most of their map. The map rasters
+(the channels of `meta.json`'s `channels`) are drawn where the model runs
+(`raster.jax_map`), at the grid and rotation it reads.
 
 A sharded cache (`prepare --shard I/N`, one job per shard, e.g. on N machines) is a directory
 of N such caches, `shard-0000I-of-0000N/`; `cache.load_cache` reads it as one cache, the
 shards' scenes in shard order and their map arrays memory-mapped per shard.
 
-The canvas a map is drawn on (`canvas_size`) covers every rotation of the grid about the
-ego, and the actors are those within its inscribed circle, so rotation augmentation never
-reaches outside the cache.
+The actors are those within the disc that holds the grid under every rotation about the
+ego (`canvas_radius`), so rotation augmentation never reaches outside the cache.
 `cache_write` writes caches, `cache` reads them, `map_store` encodes and decodes the maps.
 """
 
