@@ -82,7 +82,8 @@ class GridConfig(_Part):
 
     @property
     def canvas_size(self) -> int:
-        """Side (px) of the cached map canvas: large enough to crop any rotation of the grid."""
+        """Side (px) of the canvas that holds the grid under every rotation about the ego: the
+        disc of the actors a cache keeps, and the unrotated rasters the realism checks read."""
         return self.grid_size + 2 * math.ceil(self.grid_size * (math.sqrt(2.0) - 1.0) / 2.0 + 1.0)
 
 

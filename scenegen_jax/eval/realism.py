@@ -66,7 +66,8 @@ def vehicle_cells(canvas: np.ndarray, actors, cfg: Config, radius_m: float = 40.
     (cos, sin) direction in the ego frame, zero off every lane.
 
     Args:
-      canvas: [S, S, len(ALL_MAP_CHANNELS)] map canvas of the scene (cache layout).
+      canvas: [S, S, len(ALL_MAP_CHANNELS)] unrotated map canvas of the scene
+        (`map_canvases`).
       actors: numpy Actors [N] in the ego frame.
       cfg: config of the canvas (resolution).
       radius_m: only vehicles within this distance of the ego count.
