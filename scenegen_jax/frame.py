@@ -30,6 +30,9 @@ class Frame:
       size_measured: bool [A], whether each actor's box size was measured by the source;
         None: every box was. An unmeasured size (a placeholder for drawing the actor) is
         never learnt from nor scored.
+      future: float64 [A, H, 2] m, each actor's position FUTURE_HORIZONS_S later in this
+        frame's ego frame (`future_positions`), NaN where its track is not observed then;
+        None: the source gave no tracks (every future unknown).
     """
 
     scene_id: str
@@ -45,6 +48,7 @@ class Frame:
     map: VectorMap
     city_from_ego: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(3))
     size_measured: np.ndarray | None = None
+    future: np.ndarray | None = None
 
     @property
     def num_actors(self) -> int:
@@ -56,6 +60,41 @@ class Frame:
         if self.size_measured is None:
             return np.ones(self.num_actors, bool)
         return np.asarray(self.size_measured, bool)
+
+
+# The times ahead (s) at which a frame records each actor's future position: the paper's
+# forecasting model regresses 3 s at 0.5 s steps (supplementary 2.2).
+FUTURE_HORIZONS_S = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
+# Two samples of a track count as FUTURE_HORIZONS_S apart when they are within this of it:
+# the Argoverse 2 sensor logs' annotation times jitter by a few ms around 10 Hz.
+FUTURE_TOLERANCE_S = 0.04
+
+
+def future_positions(world_xy: np.ndarray, valid: np.ndarray, times_s: np.ndarray, step: int,
+                     city_from_ego: np.ndarray) -> np.ndarray:
+    """Positions [N, H, 2] m of N tracks FUTURE_HORIZONS_S after sample `step`, in the ego
+    frame of the pose `city_from_ego` [3, 3]; NaN where a track has no valid, finite sample
+    within FUTURE_TOLERANCE_S of that time (or the samples end first).
+
+    Args:
+      world_xy: float [N, T, 2] m, the tracks' positions in the world frame at each sample.
+      valid: bool [N, T], which samples of each track are observed.
+      times_s: float [T] s, the samples' times, increasing.
+      step: the frame's sample index into T.
+    """
+    world_xy = np.asarray(world_xy, np.float64)
+    times_s = np.asarray(times_s, np.float64)
+    out = np.full((world_xy.shape[0], len(FUTURE_HORIZONS_S), 2), np.nan)
+    want = times_s[step] + np.asarray(FUTURE_HORIZONS_S)
+    at = np.clip(np.searchsorted(times_s, want), 1, len(times_s) - 1)
+    at = np.where(np.abs(times_s[at - 1] - want) < np.abs(times_s[at] - want), at - 1, at)
+    found = np.abs(times_s[at] - want) <= FUTURE_TOLERANCE_S
+    pose = np.asarray(city_from_ego, np.float64)
+    with np.errstate(invalid="ignore", over="ignore"):
+        local = (world_xy[:, at] - pose[:2, 2]) @ pose[:2, :2]  # R^T (x - t)
+    seen = np.asarray(valid, bool)[:, at] & found & np.all(np.isfinite(local), axis=-1)
+    out[seen] = local[seen]
+    return out
 
 
 # Beyond these a row is damaged, not a road user, in every source: boxes longer or wider
@@ -120,4 +159,6 @@ def drop_beyond_limits(frame: Frame) -> tuple[Frame, collections.Counter]:
     kept = {f: getattr(frame, f)[keep] for f in fields}
     if frame.size_measured is not None:
         kept["size_measured"] = frame.measured[keep]
+    if frame.future is not None:
+        kept["future"] = frame.future[keep]
     return dataclasses.replace(frame, **kept), drops

@@ -14,6 +14,7 @@ import pytest
 
 from scenegen_jax.config import get_config
 from scenegen_jax.data import map_store as M
+from scenegen_jax.data.cache_layout import CACHE_VERSION
 from scenegen_jax.data.cache import cached_scene, load_cache, prepare_command
 from scenegen_jax.data.cache_write import CacheWriter, encode_frame, write_cache
 from scenegen_jax.data.prepare import prepare
@@ -91,7 +92,7 @@ def real(tmp_path_factory, data_root, womd_root):
 def test_real_maps_read_back_as_the_reader_gave_them(real, name):
     path, frames, _ = real[name]
     cache = load_cache(path)
-    assert len(cache) == len(frames) and cache.meta["version"] == 5
+    assert len(cache) == len(frames) and cache.meta["version"] == CACHE_VERSION
     assert sum(len(f.map.lanes) for f in frames) > 100  # real maps, not empty ones
     for i, frame in enumerate(frames):
         vmap, actors, ego = cached_scene(cache, i, CPU)
@@ -384,8 +385,8 @@ def test_a_raster_cache_is_refused_with_the_command_that_rewrites_it(tmp_path):
     (shard / "meta.json").write_text(json.dumps({"version": 4, "scene_ids": []}))
     with pytest.raises(ValueError, match=r"--source '<source kind>' --root '<data root>'"):
         load_cache(str(shard))
-    (shard / "meta.json").write_text(json.dumps({"version": 6, "scene_ids": []}))
-    with pytest.raises(ValueError, match=r"field version: 6, this scenegen reads \[5\]"):
+    (shard / "meta.json").write_text(json.dumps({"version": 7, "scene_ids": []}))
+    with pytest.raises(ValueError, match=r"field version: 7, this scenegen reads \[5, 6\]"):
         load_cache(str(shard))
 
 

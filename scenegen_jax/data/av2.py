@@ -20,7 +20,7 @@ from collections.abc import Iterator
 import numpy as np
 
 from scenegen_jax.data.av2_map import read_map
-from scenegen_jax.frame import MAX_SIZE_M, Frame
+from scenegen_jax.frame import MAX_SIZE_M, Frame, future_positions
 from scenegen_jax.scene import BICYCLIST, PEDESTRIAN, VEHICLE, wrap_angle
 from scenegen_jax.vector_map import VectorMap
 
@@ -308,6 +308,11 @@ def read_log(log_dir: str, drops: DropCounter, crop_radius_m: float = 80.0) -> I
     # Ego velocity from its own poses.
     ego_v_city = finite_difference(pose_t * 1e-9, pose_trans)
     ego_v = np.einsum("nji,nj->ni", pose_rot, ego_v_city)[:, :2]
+    times_ns, track_k, track_xyz, observed = _track_positions(keep, track, t_ns, pos_ego,
+                                                              pose_rot[pose_idx],
+                                                              pose_trans[pose_idx])
+    times_s = (times_ns - times_ns[0]) * 1e-9
+    no_pose = np.eye(3)
 
     for ts in np.unique(t_ns):
         rows = np.flatnonzero(keep & (t_ns == ts))
@@ -332,7 +337,25 @@ def read_log(log_dir: str, drops: DropCounter, crop_radius_m: float = 80.0) -> I
             ego_size=np.asarray(AV2_EGO_SIZE, np.float64),
             map=ego_map,
             city_from_ego=city_from_ego,
+            # The tracks moved into this ego frame with its full 3D pose, as the annotations
+            # are: their x, y are the ego-frame positions the future holds.
+            future=future_positions(
+                np.einsum("ji,ntj->nti", r, track_xyz[track_k[rows]] - t)[..., :2],
+                observed[track_k[rows]], times_s, int(np.searchsorted(times_ns, ts)), no_pose),
         )
+
+
+def _track_positions(keep: np.ndarray, track: np.ndarray, t_ns: np.ndarray,
+                     pos_ego: np.ndarray, rot: np.ndarray, trans: np.ndarray):
+    """The kept rows as tracks in the city frame: (annotation times [U] ns sorted, each row's
+    track index [R], city positions [K, U, 3] m, observed [K, U])."""
+    times_ns = np.unique(t_ns)
+    _, k = np.unique(track, return_inverse=True)
+    xyz = np.full((int(k.max()) + 1 if len(k) else 0, len(times_ns), 3), np.nan)
+    rows = np.flatnonzero(keep)
+    city = np.einsum("nij,nj->ni", rot[rows], pos_ego[rows]) + trans[rows]
+    xyz[k[rows], np.searchsorted(times_ns, t_ns[rows])] = city
+    return times_ns, k, xyz, np.isfinite(xyz).all(-1)
 
 
 def _track_velocities(keep: np.ndarray, track: np.ndarray, t_ns: np.ndarray,

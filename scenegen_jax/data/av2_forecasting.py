@@ -38,7 +38,7 @@ import numpy as np
 from scenegen_jax.data.av2 import AV2_EGO_SIZE
 from scenegen_jax.data.av2_map import read_map_file
 from scenegen_jax.files import files_under
-from scenegen_jax.frame import Frame
+from scenegen_jax.frame import Frame, future_positions
 from scenegen_jax.scene import BICYCLIST, PEDESTRIAN, VEHICLE, wrap_angle
 from scenegen_jax.vector_map import VectorMap, rotation_matrix, se2_pose
 
@@ -46,6 +46,7 @@ log = logging.getLogger(__name__)
 
 EGO_TRACK_ID = "AV"
 NUM_STEPS = 110  # 11 s at 10 Hz: timesteps 0..109
+STEP_S = 0.1
 MAP_RADIUS_M = 80.0
 COLUMNS = ("track_id", "object_type", "timestep", "position_x", "position_y", "heading",
            "velocity_x", "velocity_y")
@@ -202,9 +203,24 @@ def ego_row(table: dict[str, np.ndarray], step: int) -> int | None:
     return int(rows[0]) if len(rows) else None
 
 
+def track_positions(table: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(track ids [K] sorted, city positions [K, NUM_STEPS, 2] m, observed [K, NUM_STEPS])
+    of a scenario's rows: each track's first row (in file order) at each step; NaN and not
+    observed where it has none."""
+    track = table["track_id"].astype(str)
+    ids, k = np.unique(track, return_inverse=True)
+    step = table["timestep"].astype(np.int64)
+    first = np.unique(k * NUM_STEPS + step, return_index=True)[1]
+    xy = np.full((len(ids), NUM_STEPS, 2), np.nan)
+    xy[k[first], step[first]] = np.stack(
+        [table["position_x"][first], table["position_y"][first]], -1)
+    return ids, xy, np.isfinite(xy).all(-1)
+
+
 def frame_at(table: dict[str, np.ndarray], ego: int, rows: np.ndarray, city_map: VectorMap,
-             scene_id: str, source: str) -> Frame:
-    """The Frame of actor rows [n] seen from the ego row `ego`, all in the ego's frame."""
+             scene_id: str, source: str, tracks: tuple | None = None) -> Frame:
+    """The Frame of actor rows [n] seen from the ego row `ego`, all in the ego's frame; its
+    actors' futures from `tracks` (`track_positions` of the table; computed when None)."""
     p0 = np.array([table["position_x"][ego], table["position_y"][ego]])
     h0 = float(table["heading"][ego])
     ego_from_city = rotation_matrix(-h0)
@@ -213,6 +229,12 @@ def frame_at(table: dict[str, np.ndarray], ego: int, rows: np.ndarray, city_map:
     ego_v = np.array([table["velocity_x"][ego], table["velocity_y"][ego]])
     types = table["object_type"][rows]
     local_map = city_map.crop(p0, MAP_RADIUS_M)
+    ids, track_xy, observed = track_positions(table) if tracks is None else tracks
+    k = np.searchsorted(ids, table["track_id"][rows].astype(str))
+    pose = se2_pose(p0[0], p0[1], h0)
+    step = int(table["timestep"][ego])
+    future = future_positions(track_xy[k], observed[k], np.arange(NUM_STEPS) * STEP_S, step,
+                              pose)
     return Frame(
         scene_id=scene_id,
         source=source,
@@ -225,8 +247,9 @@ def frame_at(table: dict[str, np.ndarray], ego: int, rows: np.ndarray, city_map:
         ego_velocity=ego_from_city @ ego_v,
         ego_size=np.asarray(AV2_EGO_SIZE, np.float64),
         map=local_map.transform(ego_from_city, -ego_from_city @ p0),
-        city_from_ego=se2_pose(p0[0], p0[1], h0),
+        city_from_ego=pose,
         size_measured=np.zeros(len(rows), bool),
+        future=future,
     )
 
 
@@ -237,6 +260,7 @@ def frames_from_table(table: dict[str, np.ndarray], city_map: VectorMap, scenari
     naming the file and field."""
     drops: collections.Counter = collections.Counter()
     frames = []
+    tracks = track_positions(table)
     for step in range(0, NUM_STEPS, stride):
         ego = ego_row(table, step)
         if ego is None:
@@ -246,7 +270,8 @@ def frames_from_table(table: dict[str, np.ndarray], city_map: VectorMap, scenari
             drops["frame:invalid_ego"] += 1
             continue
         rows = actor_rows(table, step, drops)
-        frames.append(frame_at(table, ego, rows, city_map, f"{scenario_id}/{step}", source))
+        frames.append(frame_at(table, ego, rows, city_map, f"{scenario_id}/{step}", source,
+                               tracks))
     if not frames:
         raise ValueError(f"{source}: field track_id: no finite row of the track "
                          f"{EGO_TRACK_ID!r} at steps 0, {stride}, ... of {NUM_STEPS}")

@@ -19,6 +19,8 @@ from scenegen_jax.config import PRESETS, Config, GridConfig
 from scenegen_jax.data.cache_layout import (
     ACTOR_FIELDS,
     CACHE_VERSION,
+    FUTURE_FIELD,
+    FUTURE_VERSION,
     RASTER_FILE,
     READABLE_VERSIONS,
     SHARD_RE,
@@ -26,7 +28,7 @@ from scenegen_jax.data.cache_layout import (
     canvas_radius,
 )
 from scenegen_jax.data.map_store import FRAME_FIELDS, MapStore, StackedMapStore, load_map_store
-from scenegen_jax.frame import MAX_WORLD_M, within_world
+from scenegen_jax.frame import FUTURE_HORIZONS_S, MAX_WORLD_M, within_world
 from scenegen_jax.jsonfile import read_json
 from scenegen_jax.raster.map import ALL_MAP_CHANNELS
 from scenegen_jax.scene import Actors, in_region, make_ego
@@ -62,6 +64,9 @@ class Cache:
     ego_velocity: np.ndarray  # [S, 2] m/s
     ego_size: np.ndarray  # [S, 2] m
     city_from_ego: np.ndarray  # [S, 3, 3]
+    # [S, A, H, 2] m the actors' future positions (`cache_layout`); None in a cache of a
+    # version before FUTURE_VERSION.
+    future: np.ndarray | None = None
 
     def ego(self, index):
         """The ego of scene(s) `index` (an int or an index array): `scene.make_ego` with the
@@ -108,7 +113,8 @@ def load_cache(path: str) -> Cache:
     if not isinstance(meta, dict) or not isinstance(meta.get("scene_ids"), list):
         raise ValueError(f"{meta_path}: field scene_ids: missing or not a list")
     version = meta.get("version")
-    if isinstance(version, int) and not isinstance(version, bool) and version < CACHE_VERSION:
+    if isinstance(version, int) and not isinstance(version, bool) and version < min(
+            READABLE_VERSIONS):
         raise ValueError(
             f"{meta_path}: field version: {version}: the cache holds raster canvases "
             f"({RASTER_FILE}) of an older scenegen, which this one (cache version "
@@ -131,8 +137,9 @@ def load_cache(path: str) -> Cache:
             data = {k: z[k] for k in z.files}
     except UNREADABLE_ARRAY as e:
         raise ValueError(f"{npz_path}: unreadable actor arrays ({e}); re-run prepare") from e
+    has_future = version >= FUTURE_VERSION
     missing = [k for k in (*ACTOR_FIELDS, "ego_velocity", "ego_size", "city_from_ego",
-                           *FRAME_FIELDS) if k not in data]
+                           *FRAME_FIELDS, *[FUTURE_FIELD] * has_future) if k not in data]
     if missing:
         raise ValueError(f"{npz_path}: missing field(s) {missing}")
     n = len(meta["scene_ids"])
@@ -140,6 +147,8 @@ def load_cache(path: str) -> Cache:
         if v.ndim == 0 or v.shape[0] != n:
             raise ValueError(f"{npz_path}: field {k}: {v.shape[:1]} scenes, meta.json has {n}")
     _check_layout(meta, meta_path, data, npz_path)
+    if has_future:
+        _check_future(data[FUTURE_FIELD], n, meta["slots"], npz_path)
     actors = Actors(**{k: data[k] for k in ACTOR_FIELDS})
     actors.validate(f"{npz_path}: actors")
     _check_places_and_egos(meta, data, npz_path)
@@ -153,7 +162,19 @@ def load_cache(path: str) -> Cache:
         ego_velocity=data["ego_velocity"],
         ego_size=data["ego_size"],
         city_from_ego=data["city_from_ego"],
+        future=data[FUTURE_FIELD] if has_future else None,
     )
+
+
+def _check_future(future: np.ndarray, n: int, slots: int, npz_path: str) -> None:
+    """Raises ValueError naming the file and field unless `future` is float [n, slots, H, 2]
+    of finite or NaN (unobserved) positions."""
+    want = (n, slots, len(FUTURE_HORIZONS_S), 2)
+    if future.dtype.kind != "f" or future.shape != want:
+        raise ValueError(f"{npz_path}: field {FUTURE_FIELD}: {future.dtype} {future.shape}, "
+                         f"expected float {want}")
+    if np.isinf(future).any():
+        raise ValueError(f"{npz_path}: field {FUTURE_FIELD}: inf (unobserved positions are NaN)")
 
 
 def prepare_command(path: str, meta: dict) -> str:
@@ -318,11 +339,20 @@ def _load_sharded(path: str) -> Cache:
     return stack_caches(shards, path, meta)
 
 
-def _pad_slots(x: np.ndarray, slots: int) -> np.ndarray:
+def _pad_slots(x: np.ndarray, slots: int, value=0) -> np.ndarray:
+    """x [S, A, ...] padded to `slots` actor slots with `value` (0: invalid, class 0)."""
     if x.shape[1] == slots:
         return x
     pad = [(0, 0), (0, slots - x.shape[1])] + [(0, 0)] * (x.ndim - 2)
-    return np.pad(x, pad)  # zeros: invalid, class 0
+    return np.pad(x, pad, constant_values=value)
+
+
+def stacked_futures(caches: Sequence[Cache], slots: int) -> np.ndarray | None:
+    """The caches' `future` arrays padded to `slots` and concatenated; None unless every
+    cache has them."""
+    if any(c.future is None for c in caches):
+        return None
+    return np.concatenate([_pad_slots(c.future, slots, np.nan) for c in caches])
 
 
 def stack_caches(caches: Sequence[Cache], path: str, meta: dict) -> Cache:
@@ -342,6 +372,7 @@ def stack_caches(caches: Sequence[Cache], path: str, meta: dict) -> Cache:
         ego_velocity=cat(lambda c: c.ego_velocity),
         ego_size=cat(lambda c: c.ego_size),
         city_from_ego=cat(lambda c: c.city_from_ego),
+        future=stacked_futures(caches, slots),
     )
 
 

@@ -7,7 +7,9 @@ Layout of a cache directory (S scenes, E stored map elements, P stored map point
                     below index
   .lock             only while `prepare` writes the cache: the writer's pid and host
   actors.npz        padded actors [S, A] (cls, position, size, heading, velocity, valid,
-                    size_measured), the ego (velocity, size) per scene, the ego's world pose
+                    size_measured), their `future` positions [S, A, H, 2] float32 in the
+                    ego frame (`frame.FUTURE_HORIZONS_S` ahead; NaN where unobserved and in
+                    empty slots), the ego (velocity, size) per scene, the ego's world pose
                     `city_from_ego` [S, 3, 3], and per scene `map_start`, `map_count` (its
                     entries of map_index.npy) and `dataset` (a `map_vocab.dataset` code)
   map_index.npy     int32 [I] the element indices of every scene's map, scene after scene,
@@ -47,9 +49,13 @@ import zipfile
 from scenegen_jax.config import Config
 
 # 2: the nearest lane channels; 3: the data set channels; 4: whether each box was measured;
-# 5: vector maps stored once per cache in place of a raster canvas per scene.
-CACHE_VERSION = 5
-READABLE_VERSIONS = (5,)
+# 5: vector maps stored once per cache in place of a raster canvas per scene; 6: the actors'
+# future positions (a version 5 cache reads without them).
+CACHE_VERSION = 6
+READABLE_VERSIONS = (5, 6)
+FUTURE_FIELD = "future"
+# The first version whose caches hold FUTURE_FIELD.
+FUTURE_VERSION = 6
 # The raster canvases [S, C, C, channels] of the caches before version 5, which this
 # scenegen no longer reads.
 RASTER_FILE = "maps.npy"

@@ -20,6 +20,7 @@ from scenegen_jax.config import Config
 from scenegen_jax.data.cache_layout import (
     ACTOR_FIELDS,
     CACHE_VERSION,
+    FUTURE_FIELD,
     RASTER_FILE,
     cache_slots,
     canvas_radius,
@@ -37,7 +38,7 @@ from scenegen_jax.data.map_store import (
     frame_elements,
 )
 from scenegen_jax.files import written_whole
-from scenegen_jax.frame import Frame
+from scenegen_jax.frame import FUTURE_HORIZONS_S, Frame
 from scenegen_jax.raster.map import ALL_MAP_CHANNELS
 from scenegen_jax.scene import CLASS_NAMES, in_region
 
@@ -290,7 +291,7 @@ class CacheWriter:
         self.arrays["map_count"].append(len(enc.map))
         self.arrays["dataset"].append(self.elements.vocab["dataset"].code(enc.map.dataset))
         self.index.extend(self.elements.add(enc.map))
-        for k in ACTOR_FIELDS:
+        for k in (*ACTOR_FIELDS, FUTURE_FIELD):
             self.arrays[k].append(enc.actors[k])
         for k in ("ego_velocity", "ego_size", "city_from_ego"):
             self.arrays[k].append(getattr(enc, k))
@@ -391,6 +392,7 @@ def pad_frame_actors(frame: Frame, cfg: Config, slots: int) -> tuple[dict, np.nd
         "velocity": np.zeros((slots, 2), np.float32),
         "valid": np.zeros(slots, bool),
         "size_measured": np.zeros(slots, bool),
+        FUTURE_FIELD: np.full((slots, len(FUTURE_HORIZONS_S), 2), np.nan, np.float32),
     }
     out["cls"][:n] = frame.cls[near]
     out["position"][:n] = pos[near]
@@ -399,5 +401,7 @@ def pad_frame_actors(frame: Frame, cfg: Config, slots: int) -> tuple[dict, np.nd
     out["velocity"][:n] = frame.velocity[near]
     out["valid"][:n] = True
     out["size_measured"][:n] = frame.measured[near]
+    if frame.future is not None:
+        out[FUTURE_FIELD][:n] = frame.future[near]
     return out, inside, overflow
 

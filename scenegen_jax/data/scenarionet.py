@@ -100,7 +100,7 @@ from scenegen_jax.data.scenarionet_tracks import (
     velocity_mismatch,
 )
 from scenegen_jax.files import files_under
-from scenegen_jax.frame import Frame, drop_beyond_limits
+from scenegen_jax.frame import Frame, drop_beyond_limits, future_positions
 from scenegen_jax.scene import PEDESTRIAN, VEHICLE, wrap_angle
 from scenegen_jax.vector_map import rotation_matrix, se2_pose
 
@@ -210,7 +210,8 @@ def frames_from_scenario(
     scenario_id = str(scenario.get("id", meta.get("scenario_id", Path(source).stem)))
     own_id = (str(meta["scenegen_scene_id"]) if length == 1 and "scenegen_scene_id" in meta
               else None)  # our own one-step export's scene id
-    mismatch = bool(steps) and velocity_mismatch(list(read.values()), _step_times(scenario, length))
+    times_s = _step_times(scenario, length)
+    mismatch = bool(steps) and velocity_mismatch(list(read.values()), times_s)
     measured = not constant_boxes(read.values())
 
     out = []
@@ -223,7 +224,7 @@ def frames_from_scenario(
             ego_w, ego_l = ego_l, ego_w
         scene_id = own_id if own_id is not None else f"{scenario_id}/{t}"
         frame = _frame_at(t, read, sdc_id, (ego_w, ego_l), world_map, city_from_world, scene_id,
-                          source, map_radius_m, dropped)
+                          source, map_radius_m, dropped, times_s)
         if not measured:
             frame.size_measured = np.zeros(frame.num_actors, bool)
         out.append(ImportedFrame(frame, dropped))
@@ -369,9 +370,11 @@ def _actors_at(t: int, read: dict, sdc_id: str, ego_from_world: np.ndarray, orig
 
 def _frame_at(t: int, read: dict, sdc_id: str, ego_size: tuple[float, float], world_map,
               city_from_world: np.ndarray, scene_id: str, source: str,
-              map_radius_m: float | None, dropped: collections.Counter) -> Frame:
+              map_radius_m: float | None, dropped: collections.Counter,
+              times_s: np.ndarray) -> Frame:
     """The Frame of step t in the SDC's ego frame (the ego's box `ego_size` (width, length)
-    m, already checked), its map cropped to `map_radius_m` if given."""
+    m, already checked), its map cropped to `map_radius_m` if given, its actors' futures from
+    their tracks at the steps' times `times_s` [T] s."""
     sdc = read[sdc_id]
     x0, y0 = sdc.position[t]
     h0 = float(sdc.heading[t])
@@ -382,6 +385,9 @@ def _frame_at(t: int, read: dict, sdc_id: str, ego_size: tuple[float, float], wo
     if map_radius_m is not None:
         vmap = vmap.crop(np.zeros(2), map_radius_m)
     n = len(cls)
+    track_xy = np.asarray([read[tid].position for tid in ids], np.float64).reshape(n, -1, 2)
+    track_valid = np.asarray([read[tid].valid for tid in ids], bool).reshape(n, -1)
+    future = future_positions(track_xy, track_valid, times_s, t, se2_pose(x0, y0, h0))
     return Frame(
         scene_id=scene_id,
         source=source,
@@ -395,6 +401,7 @@ def _frame_at(t: int, read: dict, sdc_id: str, ego_size: tuple[float, float], wo
         ego_size=np.array(ego_size, np.float64),
         map=vmap,
         city_from_ego=city_from_world @ se2_pose(x0, y0, h0),
+        future=future,
     )
 
 

@@ -53,6 +53,7 @@ class CacheUnion:
     ego_velocity: np.ndarray
     ego_size: np.ndarray
     city_from_ego: np.ndarray
+    future: np.ndarray | None
 
     @classmethod
     def of(cls, caches: Sequence[Cache]) -> CacheUnion:
@@ -65,7 +66,7 @@ class CacheUnion:
         if len(caches) == 1:
             c = caches[0]
             return cls(caches, offsets, labels, c.path, c.meta, c.map_store, c.actors,
-                       c.ego_velocity, c.ego_size, c.city_from_ego)
+                       c.ego_velocity, c.ego_size, c.city_from_ego, c.future)
         slots = max(c.actors.cls.shape[1] for c in caches)
         first = caches[0].meta
         meta = {
@@ -77,13 +78,14 @@ class CacheUnion:
             "source": {},
         }
         whole = stack_caches(caches, " + ".join(c.path for c in caches), meta)
-        per_scene = {k: getattr(whole, k) for k in ("ego_velocity", "ego_size", "city_from_ego")}
+        per_scene = {k: getattr(whole, k) for k in ("ego_velocity", "ego_size", "city_from_ego",
+                                                    "future")}
         members = []
         for c, a, b in zip(caches, offsets[:-1], offsets[1:], strict=True):
             members.append(dataclasses.replace(
                 c,
                 actors=Actors(**{k: getattr(whole.actors, k)[a:b] for k in ACTOR_FIELDS}),
-                **{k: v[a:b] for k, v in per_scene.items()},
+                **{k: None if v is None else v[a:b] for k, v in per_scene.items()},
             ))
         return cls(members, offsets, labels, whole.path, meta, whole.map_store, whole.actors,
                    **per_scene)

@@ -27,7 +27,7 @@ from scenegen_jax.data.surface import (
     outline_lanes,
     stacked_normals,
 )
-from scenegen_jax.frame import MAX_WORLD_M, Frame, within_world
+from scenegen_jax.frame import MAX_WORLD_M, Frame, future_positions, within_world
 from scenegen_jax.scene import BICYCLIST, PEDESTRIAN, VEHICLE, wrap_angle
 from scenegen_jax.vector_map import (
     ROAD_EDGE,
@@ -250,6 +250,7 @@ def scenario_frames(
     boxed = np.array([t != "pedestrian" for t in tracks.type])
     frames = []
     n_steps = tracks.valid.shape[1]
+    times_s = np.arange(n_steps) * STEP_S
     for t in range(0, n_steps, stride):
         if not tracks.valid[sdc, t]:
             dropped["frame:no_ego"] += 1
@@ -289,6 +290,8 @@ def scenario_frames(
                 ego_size=tracks.size[sdc, t].astype(np.float64),
                 map=vmap,
                 city_from_ego=se2_pose(x0, y0, h0),
+                future=future_positions(tracks.position[rows], tracks.valid[rows], times_s, t,
+                                        se2_pose(x0, y0, h0)),
             )
         )
     if not frames:

@@ -10,7 +10,7 @@ import sys
 from tqdm import tqdm
 
 from scenegen_jax.config import Config, get_config
-from scenegen_jax.data.cache_layout import CACHE_VERSION
+from scenegen_jax.data.cache_layout import READABLE_VERSIONS
 from scenegen_jax.jsonfile import read_json
 from scenegen_jax.recipes import Recipe, Run
 from scenegen_jax.train.loop import train
@@ -25,12 +25,12 @@ def cache_path(recipe: Recipe, cache_dir: str, name: str) -> str:
 
 
 def _current_cache(path: str) -> bool:
-    """Whether `path` holds a cache of this scenegen's version."""
+    """Whether `path` holds a cache that this scenegen reads."""
     meta_path = os.path.join(path, "meta.json")
     if not os.path.isfile(meta_path):
         return False
     meta = read_json(meta_path)
-    return isinstance(meta, dict) and meta.get("version") == CACHE_VERSION
+    return isinstance(meta, dict) and meta.get("version") in READABLE_VERSIONS
 
 
 def prepare_caches(recipe: Recipe, cache_dir: str, data_root: str, names=None,
