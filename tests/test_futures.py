@@ -8,8 +8,8 @@ import shutil
 
 import numpy as np
 import pytest
-
 from conftest import DATA_ROOT, FORECAST_ROOT, WOMD_ROOT
+
 from scenegen_jax.config import get_config
 from scenegen_jax.data.cache import load_cache
 from scenegen_jax.data.cache_write import write_cache

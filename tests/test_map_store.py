@@ -14,8 +14,8 @@ import pytest
 
 from scenegen_jax.config import get_config
 from scenegen_jax.data import map_store as M
-from scenegen_jax.data.cache_layout import CACHE_VERSION
 from scenegen_jax.data.cache import cached_scene, load_cache, prepare_command
+from scenegen_jax.data.cache_layout import CACHE_VERSION
 from scenegen_jax.data.cache_write import CacheWriter, encode_frame, write_cache
 from scenegen_jax.data.prepare import prepare
 from scenegen_jax.data.sources import read_file, source_files, source_spec
