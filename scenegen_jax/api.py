@@ -189,15 +189,25 @@ def sample(model: Model, data: CacheUnion | str | Sequence[str], num_scenes: int
 
 def evaluate(model: Model, data: CacheUnion | str | Sequence[str],
              train_data: CacheUnion | str | Sequence[str], num_scenes: int = 64,
-             seed: int = 0) -> dict:
+             seed: int = 0, companions: str | None = None) -> dict:
     """The paper's Table 1 protocol on `data`: NLL, MMD against the baselines (fitted on
-    `train_data`) and realism figures (`eval.evaluate.evaluate`)."""
+    `train_data`) and realism figures (`eval.evaluate.evaluate`). The Features MMD and the
+    learned baselines read the companions shipped with `companions` (a pretrained model's
+    name or directory; default: the model's own when it is a pretrained one); those missing
+    are left out."""
     from scenegen_jax.eval.evaluate import evaluate as evaluate_model
+    from scenegen_jax.pretrained import COMPANIONS, load_companion
+    from scenegen_jax.workdir import CHECKPOINTS
 
     model = check_model(model, "evaluate")
+    source = companions
+    if source is None and model.source and not os.path.isdir(
+            os.path.join(model.source, CHECKPOINTS)):
+        source = model.source
+    found = {kind: load_companion(source, kind) if source else None for kind in COMPANIONS}
     return evaluate_model(model.params, model.config, _open(model, data),
-                          _open(model, train_data), num_scenes, seed,
-                          model.sampler_options())
+                          _open(model, train_data), num_scenes, seed, model.sampler_options(),
+                          {k: v[:2] for k, v in found.items() if v is not None})
 
 
 def render(model: Model, scenes: CacheScene | Sequence[CacheScene], path: str) -> list[str]:

@@ -103,8 +103,8 @@ def _run(argv: list[str] | None) -> None:
     args = build_parser().parse_args(argv)
     from scenegen_jax.cli import data, model, sample, score
 
-    compiles = (model.cmd_train, model.cmd_reproduce, score.cmd_score, sample.cmd_sample,
-                score.cmd_evaluate)
+    compiles = (model.cmd_train, model.cmd_reproduce, model.cmd_train_forecaster,
+                model.cmd_train_baseline, score.cmd_score, sample.cmd_sample, score.cmd_evaluate)
     computes = (*compiles, model.cmd_models, model.cmd_export_model, data.cmd_render)
 
     logging.basicConfig(

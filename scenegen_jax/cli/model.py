@@ -1,5 +1,5 @@
-"""Models: `scenegen train`, `export-model` and `models` (the other commands load a model with
-`common.load_model`, from `--pretrained` or `--workdir`)."""
+"""Models: `scenegen train`, `reproduce`, `export-model`, `train-forecaster` and `models` (the
+other commands load a model with `common.load_model`, from `--pretrained` or `--workdir`)."""
 
 from __future__ import annotations
 
@@ -61,6 +61,60 @@ def cmd_export_model(args) -> None:
                else {"location_temperature": args.location_temperature})
     manifest = save_pretrained(args.out, cfg, params, step, args.workdir, sampler)
     print(json.dumps({"out": args.out, **manifest}))
+
+
+def cmd_train_forecaster(args) -> None:
+    from scenegen_jax.data.union import load_union
+    from scenegen_jax.model.forecaster import ForecasterConfig
+    from scenegen_jax.pretrained import resolve, save_companion
+    from scenegen_jax.train.fit import save_run_config
+    from scenegen_jax.train.forecaster import forecast_data, forecast_errors, train_forecaster
+
+    out = resolve(args.out) if args.out else None  # a model to ship it with, checked first
+    grid = get_config(args.config).grid
+    cfg = ForecasterConfig(grid=grid)
+    train = load_union(args.data, get_config(args.config))
+    val = load_union(args.val_data, get_config(args.config))
+    save_run_config(args.workdir, {
+        "model": "forecaster", "config": args.config, **cfg.to_dict(), "data": args.data,
+        "batch_size": args.batch_size, "lr": args.lr, "seed": args.seed})
+    params = train_forecaster(cfg, forecast_data(train, grid, desc="draw train scenes"),
+                              args.workdir, args.steps, args.batch_size, args.lr, args.seed)
+    errors = forecast_errors(params, cfg, forecast_data(val, grid, desc="draw val scenes"))
+    report = {"workdir": args.workdir, "step": args.steps, "val": errors}
+    if out:
+        save_companion(out, "forecaster", cfg, args.config, params, args.steps, args.workdir,
+                       errors)
+        report["out"] = out
+    print(json.dumps(report))
+
+
+def cmd_train_baseline(args) -> None:
+    from scenegen_jax.data.union import load_union
+    from scenegen_jax.eval.layout_vae import layout_vae_scores, summarize
+    from scenegen_jax.likelihood.host_data import layout_data
+    from scenegen_jax.model.layout_vae import LayoutVAEConfig
+    from scenegen_jax.pretrained import resolve, save_companion
+    from scenegen_jax.train.fit import save_run_config
+    from scenegen_jax.train.layout_vae import train_layout_vae
+
+    out = resolve(args.out) if args.out else None  # a model to ship it with, checked first
+    cfg_grid = get_config(args.config)
+    cfg = LayoutVAEConfig(grid=cfg_grid.grid)
+    train = load_union(args.data, cfg_grid)
+    val = load_union(args.val_data, cfg_grid)
+    save_run_config(args.workdir, {
+        "model": args.name, "config": args.config, **cfg.to_dict(), "data": args.data,
+        "batch_size": args.batch_size, "lr": args.lr, "seed": args.seed})
+    params = train_layout_vae(cfg, layout_data(train, cfg.grid, desc="draw train maps"),
+                              args.workdir, args.steps, args.batch_size, args.lr, args.seed)
+    figures = {"val_nll": summarize(layout_vae_scores(params, cfg, val, args.seed))}
+    report = {"workdir": args.workdir, "step": args.steps, **figures}
+    if out:
+        save_companion(out, args.name, cfg, args.config, params, args.steps, args.workdir,
+                       figures)
+        report["out"] = out
+    print(json.dumps(report))
 
 
 def cmd_models(args) -> None:
@@ -131,6 +185,45 @@ def add_parsers(sub) -> None:
                     help="the location temperature `sample` and `evaluate` use with this model "
                     "unless told otherwise (recorded in the manifest; default: none, i.e. 1)")
     sp.set_defaults(func=cmd_export_model)
+
+    sp = sub.add_parser("train-forecaster", help="train the motion forecaster whose features "
+                        "give `evaluate`'s Features MMD, on caches with futures")
+    sp.add_argument("--config", default="cpu", choices=sorted(PRESETS),
+                    help="the preset whose grid it reads: the SceneGen model's it measures")
+    sp.add_argument("--data", required=True, nargs="+", metavar="CACHE",
+                    help="training caches (cache version 6: they hold the actors' futures)")
+    sp.add_argument("--val-data", required=True, nargs="+", metavar="CACHE",
+                    help="held-out caches for its ADE/FDE against constant velocity")
+    sp.add_argument("--workdir", required=True, type=path_arg,
+                    help="checkpoints, forecaster.json, metrics.jsonl (resumes)")
+    sp.add_argument("--steps", type=nonnegative_int, default=3000)
+    sp.add_argument("--batch-size", type=positive_int, default=32)
+    sp.add_argument("--lr", type=positive_float, default=1e-3)
+    sp.add_argument("--seed", type=nonnegative_int, default=0)
+    sp.add_argument("--out", type=path_arg,
+                    help="the pretrained model (name or directory) to ship it with, in its "
+                    "forecaster/ folder")
+    sp.set_defaults(func=cmd_train_forecaster)
+
+    sp = sub.add_parser("train-baseline", help="train a learned baseline of the paper's "
+                        "Table 1 on the training caches")
+    sp.add_argument("name", choices=["layoutvae"], help="the baseline")
+    sp.add_argument("--config", default="cpu", choices=sorted(PRESETS),
+                    help="the preset whose grid it generates on: the SceneGen model's")
+    sp.add_argument("--data", required=True, nargs="+", metavar="CACHE",
+                    help="training caches (SceneGen's)")
+    sp.add_argument("--val-data", required=True, nargs="+", metavar="CACHE",
+                    help="held-out caches for its Monte-Carlo NLL")
+    sp.add_argument("--workdir", required=True, type=path_arg,
+                    help="checkpoints, run.json, metrics.jsonl (resumes)")
+    sp.add_argument("--steps", type=nonnegative_int, default=3000)
+    sp.add_argument("--batch-size", type=positive_int, default=32)
+    sp.add_argument("--lr", type=positive_float, default=1e-3)
+    sp.add_argument("--seed", type=nonnegative_int, default=0)
+    sp.add_argument("--out", type=path_arg,
+                    help="the pretrained model (name or directory) to ship it with, in its "
+                    "NAME/ folder")
+    sp.set_defaults(func=cmd_train_baseline)
 
     sp = sub.add_parser("models", help="list the pretrained models shipped with the package")
     sp.set_defaults(func=cmd_models)

@@ -131,6 +131,25 @@ def _render_worst(scores, cache, cfg, k: int, out_dir: str) -> list[str]:
     return paths
 
 
+def _companions(args) -> dict:
+    """{kind: (config, parameters)} of the companions (the forecaster, the learned
+    baselines) shipped with `--companions`, else with the `--pretrained` model; each one
+    missing is logged (its column or row is left out)."""
+    from scenegen_jax.pretrained import COMPANIONS, load_companion
+
+    source = args.companions or args.pretrained
+    out = {}
+    for kind in COMPANIONS:
+        found = load_companion(source, kind) if source else None
+        if found is None:
+            logging.getLogger("scenegen").warning(
+                "no %s (%s): left out of the table; give --companions MODEL", kind,
+                f"{source} ships none" if source else "a --workdir model")
+        else:
+            out[kind] = found[:2]
+    return out
+
+
 def cmd_evaluate(args) -> None:
     from scenegen_jax.data.union import load_union
     from scenegen_jax.eval.evaluate import evaluate, format_table
@@ -147,7 +166,8 @@ def cmd_evaluate(args) -> None:
             "%s: in both --data and --train-data; the figures are not on held-out scenes",
             ", ".join(sorted(both)))
     options = SamplerOptions(location_temperature=location_temperature(args, sampler))
-    report = evaluate(params, cfg, cache, train_cache, args.num, args.seed, options)
+    report = evaluate(params, cfg, cache, train_cache, args.num, args.seed, options,
+                      _companions(args))
     report["step"] = step
     report["command"] = " ".join(["scenegen", *sys.argv[1:]])
     with written_whole(args.out) as tmp, open(tmp, "w") as f:
@@ -200,6 +220,9 @@ def add_parsers(sub) -> None:
     sp.add_argument("--train-data", required=True, nargs="+", metavar="CACHE",
                     help="training caches (Procedural's KDE)")
     sp.add_argument("--num", type=positive_int, default=64, help="conditioning scenes for MMD")
+    sp.add_argument("--companions", metavar="MODEL",
+                    help="the pretrained model (name or directory) whose forecaster (Features "
+                    "MMD) and learned baselines to read (default: --pretrained's own)")
     sp.add_argument("--seed", type=seed_int, default=0)
     add_temperature_arg(sp)
     sp.add_argument("--out", required=True, help="report JSON")

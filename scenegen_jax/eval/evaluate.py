@@ -1,5 +1,6 @@
 """The paper's Table 1 protocol on one split: NLL of real scenes, and MMD of scenes generated
-by SceneGen and the baselines against the real ones, all on the same conditioning scenes."""
+by SceneGen and the baselines against the real ones, all on the same conditioning scenes; the
+real scenes' two halves against each other give the floor ("Real (split)")."""
 
 from __future__ import annotations
 
@@ -15,6 +16,8 @@ from scenegen_jax.config import Config
 from scenegen_jax.data.cache import Cache
 from scenegen_jax.data.sources import read_frames
 from scenegen_jax.eval import baselines
+from scenegen_jax.eval.features import features_mmd, scene_features
+from scenegen_jax.eval.layout_vae import layout_vae_scores, sample_layout_vae, summarize
 from scenegen_jax.eval.mmd import mmd_table
 from scenegen_jax.eval.nll import score_cache, summarize_by_source, summarize_scores
 from scenegen_jax.eval.realism import map_canvases, realism_stats
@@ -23,8 +26,11 @@ from scenegen_jax.sampling.batch import sample_scenes, seed_key
 from scenegen_jax.sampling.rollout import DEFAULT_OPTIONS, SamplerOptions
 
 log = logging.getLogger(__name__)
-METHODS = ("Prob. Grammar", "Procedural", "SceneGen")
-MMD_ROWS = ("class/all", "area/all", "speed/all", "heading/all", "area/vehicle",
+# Table 1's rows in the paper's order; a learned baseline's row is there when its model is
+# given (`companions`).
+METHODS = ("Prob. Grammar", "MetaSim", "Procedural", "Lane Graph", "LayoutVAE", "SceneGen")
+FLOOR = "Real (split)"
+MMD_ROWS = ("features", "class/all", "area/all", "speed/all", "heading/all", "area/vehicle",
             "speed/vehicle", "heading/vehicle")  # fmt: skip
 
 
@@ -82,14 +88,36 @@ def sample_baselines(cfg: Config, cache: Cache, indices, train_cache: Cache, see
     }
 
 
+def features_rows(forecaster, maps, scenes, generated: dict) -> dict:
+    """{method: Features MMD^2 against the real scenes}, and FLOOR's: the real scenes' even
+    against their odd halves, each on its own maps."""
+    fcfg, fparams = forecaster
+    egos = jax.tree.map(lambda *x: np.stack(x), *[s.ego for s in scenes])
+    real = [s.actors for s in scenes]
+    f_real = scene_features(fparams, fcfg, maps, real, egos)
+    out = {m: features_mmd(f_real, scene_features(fparams, fcfg, maps, generated[m], egos))
+           for m in generated}
+    out[FLOOR] = features_mmd(f_real[0::2], f_real[1::2])
+    return out
+
+
 def evaluate(params, cfg: Config, cache: Cache, train_cache: Cache, num_scenes: int, seed: int,
-             options: SamplerOptions = DEFAULT_OPTIONS):
+             options: SamplerOptions = DEFAULT_OPTIONS, companions: dict | None = None):
     """NLL of every cached scene (overall and per source), and MMD rows and realism figures
     (`realism.realism_stats`) for every method and the real scenes on `num_scenes` scenes
     spread evenly over all of them; SceneGen samples with `options`. `cache` may be a
-    `data.union.CacheUnion` of several caches (sources)."""
+    `data.union.CacheUnion` of several caches (sources).
+
+    `companions`: {kind: (config, parameters)} of models at `cfg`'s grid shipped beside it
+    (`pretrained.load_companion`): with "forecaster" the MMD rows include "features"; with
+    "layoutvae" LayoutVAE is a method, with its Monte-Carlo NLL in "baseline_nll"."""
     if num_scenes < 1:
         raise ValueError(f"num_scenes must be >= 1, got {num_scenes}")
+    companions = dict(companions or {})
+    for kind, (ccfg, _) in companions.items():
+        if ccfg.grid != cfg.grid:
+            raise ValueError(f"the {kind} reads the grid {ccfg.grid}, the model {cfg.grid}: "
+                             "it would not read the model's scenes")
     seed_key(seed)  # checked now, not after the scoring
     train_cache.check_config(cfg)
     scores = score_cache(params, cache, cfg)
@@ -98,14 +126,26 @@ def evaluate(params, cfg: Config, cache: Cache, train_cache: Cache, num_scenes: 
     indices = np.linspace(0, len(cache) - 1, min(num_scenes, len(cache))).astype(int)
     maps, scenes = real_scenes(cache, indices, cfg)
     generated = sample_baselines(cfg, cache, indices, train_cache, seed)
+    baseline_nll = {}
+    if "layoutvae" in companions:
+        lcfg, lparams = companions["layoutvae"]
+        egos = jax.tree.map(lambda *x: np.stack(x), *[s.ego for s in scenes])
+        generated["LayoutVAE"] = sample_layout_vae(lparams, lcfg, maps, egos, seed)
+        baseline_nll["LayoutVAE"] = summarize(layout_vae_scores(lparams, lcfg, cache, seed))
     generated["SceneGen"] = sample_scenegen(params, cfg, maps, scenes, seed, options=options)
+    methods = [m for m in METHODS if m in generated]
     real = [s.actors for s in scenes]
-    mmd = {m: mmd_table(real, generated[m], region_m=cfg.grid.region_m) for m in METHODS}
+    mmd = {m: mmd_table(real, generated[m], region_m=cfg.grid.region_m) for m in methods}
+    mmd[FLOOR] = mmd_table(real[0::2], real[1::2], region_m=cfg.grid.region_m)
+    if "forecaster" in companions:
+        for m, value in features_rows(companions["forecaster"], maps, scenes,
+                                      generated).items():
+            mmd[m]["features"] = value
     canvases = list(map_canvases(cache, indices, cfg))
-    realism = {m: realism_stats(canvases, generated[m], cfg) for m in METHODS}
+    realism = {m: realism_stats(canvases, generated[m], cfg) for m in methods}
     realism["real"] = realism_stats(canvases, real, cfg)
-    return {"nll": nll, "nll_by_source": nll_by_source, "mmd": mmd, "realism": realism,
-            "conditioning_scenes": len(indices)}
+    return {"nll": nll, "nll_by_source": nll_by_source, "baseline_nll": baseline_nll,
+            "mmd": mmd, "realism": realism, "conditioning_scenes": len(indices)}
 
 
 def format_table(report: dict) -> str:
@@ -113,9 +153,14 @@ def format_table(report: dict) -> str:
     nll = report["nll"]
     cols = ["method", "NLL/scene", *MMD_ROWS]
     lines = [" | ".join(cols), " | ".join("---" for _ in cols)]
-    for m in METHODS:
-        scene_nll = f"{nll['scene_nll']:.1f}" if m == "SceneGen" else "-"
-        row = [f"{report['mmd'][m].get(r, float('nan')):.4f}" for r in MMD_ROWS]
+    for m in (*METHODS, FLOOR):
+        if m not in report["mmd"]:
+            continue
+        scene_nll = (f"{nll['scene_nll']:.1f}" if m == "SceneGen" else
+                     f"{report['baseline_nll'][m]['scene_nll']:.1f}"
+                     if m in report.get("baseline_nll", {}) else "-")
+        row = [f"{report['mmd'][m][r]:.4f}" if r in report["mmd"][m] else "-"
+               for r in MMD_ROWS]
         lines.append(" | ".join([m, scene_nll, *row]))
     lines.append("")
     lines.append("realism | vehicles on drivable (of within 40 m) | lane-aligned (of on a lane) "

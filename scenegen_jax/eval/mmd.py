@@ -183,16 +183,27 @@ def tv_kernel(p: np.ndarray, q: np.ndarray, sigma: float = 1.0, chunk: int = 1 <
     return out
 
 
+def rbf_kernel(p: np.ndarray, q: np.ndarray, sigma: float = 1.0):
+    """Gram matrix exp(-|p - q|^2 / (2 sigma^2)) between vectors p [m, D] and q [n, D]."""
+    p = np.asarray(p, np.float64)
+    q = np.asarray(q, np.float64)
+    d2 = (p**2).sum(1)[:, None] + (q**2).sum(1)[None, :] - 2.0 * p @ q.T
+    return np.exp(-np.maximum(d2, 0.0) / (2.0 * sigma**2))
+
+
 def mmd(
-    histograms_a: np.ndarray, histograms_b: np.ndarray, sigma: float = 1.0, unbiased: bool = False
+    histograms_a: np.ndarray, histograms_b: np.ndarray, sigma: float = 1.0, unbiased: bool = False,
+    kernel=tv_kernel,
 ) -> float:
-    """MMD^2 between two sets of histograms with the Gaussian-TV kernel (eq. 19 by default).
+    """MMD^2 between two sets of histograms with the Gaussian-TV kernel (eq. 19 by default),
+    or of feature vectors with `kernel=rbf_kernel`.
 
     Args:
       histograms_a: [m, B] normalised histograms (e.g. real scenes).
       histograms_b: [n, B] normalised histograms (e.g. generated scenes).
       sigma: kernel bandwidth.
       unbiased: U-statistic (within-set diagonal excluded) instead of the paper's V-statistic.
+      kernel: the Gram matrix function (p, q, sigma).
 
     Returns:
       MMD^2 estimate; NaN when a set is too small (empty, or one element with `unbiased`).
@@ -204,7 +215,7 @@ def mmd(
     m, n = a.shape[0], b.shape[0]
     if min(m, n) < (2 if unbiased else 1):
         return float("nan")
-    k_aa, k_bb, k_ab = tv_kernel(a, a, sigma), tv_kernel(b, b, sigma), tv_kernel(a, b, sigma)
+    k_aa, k_bb, k_ab = kernel(a, a, sigma), kernel(b, b, sigma), kernel(a, b, sigma)
     if unbiased:
         xx = (k_aa.sum() - np.trace(k_aa)) / (m * (m - 1))
         yy = (k_bb.sum() - np.trace(k_bb)) / (n * (n - 1))

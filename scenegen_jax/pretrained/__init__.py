@@ -12,7 +12,11 @@ A pretrained model is a directory of three files:
                    {"location_temperature": 0.7}}
 
 (`save_pretrained`, `scenegen export-model`); a model shipped with the package also has a
-human-readable `MODEL_CARD.md` beside them. `load_pretrained(name)` finds `name` among
+human-readable `MODEL_CARD.md` beside them. Beside it may ship its companions
+(`COMPANIONS`), each in its own folder with the same three files (`save_companion`; its
+config.json the companion's config, the config preset whose grid it reads and its held-out
+figures): `forecaster/`, the motion forecaster whose features give `evaluate`'s Features MMD,
+and `layoutvae/`, the LayoutVAE baseline. `load_pretrained(name)` finds `name` among
 the directories of this package (`available()`), or takes a path to such a directory,
 verifies the checksum and every array's shape against the config's model, and returns
 (config, parameters, manifest): no training state, no optimizer.
@@ -29,8 +33,10 @@ import numpy as np
 from flax import serialization
 from flax.traverse_util import flatten_dict
 
-from scenegen_jax.config import Config
+from scenegen_jax.config import Config, get_config
 from scenegen_jax.jsonfile import read_json
+from scenegen_jax.model.forecaster import ForecasterConfig, init_forecaster
+from scenegen_jax.model.layout_vae import LayoutVAEConfig, init_layout_vae
 from scenegen_jax.model.network import init_params
 from scenegen_jax.sampling.rollout import SamplerOptions
 
@@ -38,6 +44,11 @@ PACKAGE_DIR = os.path.dirname(os.path.abspath(__file__))
 CONFIG_FILE = "config.json"
 PARAMS_FILE = "params.msgpack"
 MANIFEST_FILE = "manifest.json"
+# Models shipped beside a SceneGen model, by folder: (config class, parameter initialiser).
+COMPANIONS = {
+    "forecaster": (ForecasterConfig, init_forecaster),
+    "layoutvae": (LayoutVAEConfig, init_layout_vae),
+}
 
 
 def available() -> list[str]:
@@ -110,6 +121,13 @@ def save_pretrained(directory: str, cfg: Config, params, step: int, source: str,
     """Writes `params` of a model of config `cfg` as a pretrained model directory, with the
     sampler settings it recommends (`sampler`, optional); returns the manifest. Overwrites
     the three files of an existing one."""
+    extra = {"sampler": check_sampler(dict(sampler), "sampler")} if sampler else {}
+    return _write_model(directory, cfg.to_json(), params, step, source, extra)
+
+
+def _write_model(directory: str, config_text: str, params, step: int, source: str,
+                 extra: dict) -> dict:
+    """Writes config.json, params.msgpack and manifest.json (with `extra` fields)."""
     params = jax.device_get(params)
     data = serialization.to_bytes(params)
     manifest = {
@@ -117,18 +135,47 @@ def save_pretrained(directory: str, cfg: Config, params, step: int, source: str,
         "parameters": int(sum(np.size(x) for x in jax.tree.leaves(params))),
         "step": int(step),
         "source": source,
+        **extra,
     }
-    if sampler:
-        manifest["sampler"] = check_sampler(dict(sampler), "sampler")
     os.makedirs(directory, exist_ok=True)
     with open(os.path.join(directory, CONFIG_FILE), "w") as f:
-        f.write(cfg.to_json() + "\n")
+        f.write(config_text + "\n")
     with open(os.path.join(directory, PARAMS_FILE), "wb") as f:
         f.write(data)
     with open(os.path.join(directory, MANIFEST_FILE), "w") as f:
         json.dump(manifest, f, indent=1)
         f.write("\n")
     return manifest
+
+
+def save_companion(model_dir: str, kind: str, cfg, preset: str, params, step: int,
+                   source: str, figures: dict) -> dict:
+    """Writes a trained companion (`COMPANIONS`) into `model_dir`/`kind`/ (config: `cfg`, the
+    config preset whose grid it reads, its held-out `figures`); returns the manifest."""
+    config = {"config": preset, **cfg.to_dict(), "figures": figures}
+    return _write_model(os.path.join(model_dir, kind), json.dumps(config, indent=1), params,
+                        step, source, {})
+
+
+def load_companion(name_or_dir: str, kind: str):
+    """(config, parameters, config.json's fields) of the companion `kind` shipped with a
+    model (a name or a pretrained directory), or None when the model has none.
+
+    Raises ValueError naming the file as `load_pretrained` does.
+    """
+    config_class, init = COMPANIONS[kind]
+    directory = os.path.join(resolve(name_or_dir), kind)
+    if not os.path.isfile(os.path.join(directory, MANIFEST_FILE)):
+        return None
+    config_path = os.path.join(directory, CONFIG_FILE)
+    fields = read_json(config_path)
+    try:
+        cfg = config_class.from_dict(fields, get_config(fields["config"]).grid)
+    except (KeyError, TypeError, ValueError) as e:
+        raise ValueError(f"{config_path}: not a {kind} config ({e!r})") from e
+    template = jax.eval_shape(lambda: init(cfg))
+    params, _ = _read_params(directory, template)
+    return cfg, params, fields
 
 
 def load_pretrained(name_or_dir: str) -> tuple[Config, dict, dict]:
@@ -140,17 +187,25 @@ def load_pretrained(name_or_dir: str) -> tuple[Config, dict, dict]:
         parameter missing or of the wrong shape for the config's model.
     """
     directory = resolve(name_or_dir)
-    paths = {k: os.path.join(directory, k) for k in (CONFIG_FILE, PARAMS_FILE, MANIFEST_FILE)}
+    config_path = os.path.join(directory, CONFIG_FILE)
+    with open(config_path, "rb") as f:
+        cfg = Config.from_json(f.read(), config_path)
+    template = jax.eval_shape(lambda: init_params(cfg.model, jax.random.key(0)))
+    params, manifest = _read_params(directory, template)
+    return cfg, params, manifest
+
+
+def _read_params(directory: str, template) -> tuple[dict, dict]:
+    """(parameters, manifest) of a model directory: the checksum and every array's shape
+    checked against `template` (abstract arrays)."""
+    paths = {k: os.path.join(directory, k) for k in (PARAMS_FILE, MANIFEST_FILE)}
     manifest = check_manifest(read_json(paths[MANIFEST_FILE]), paths[MANIFEST_FILE])
-    with open(paths[CONFIG_FILE], "rb") as f:
-        cfg = Config.from_json(f.read(), paths[CONFIG_FILE])
     with open(paths[PARAMS_FILE], "rb") as f:
         data = f.read()
     if _sha256(data) != manifest.get("sha256"):
         raise ValueError(
             f"{paths[PARAMS_FILE]}: sha256 differs from {MANIFEST_FILE}'s (damaged or edited)"
         )
-    template = jax.eval_shape(lambda: init_params(cfg.model, jax.random.key(0)))
     try:
         raw = serialization.msgpack_restore(data)
     except Exception as e:  # msgpack raises several types for malformed bytes
@@ -170,4 +225,4 @@ def load_pretrained(name_or_dir: str) -> tuple[Config, dict, dict]:
         raise ValueError(f"{paths[PARAMS_FILE]}: parameters the model does not have: {extra}")
     params = serialization.from_state_dict(template, raw)
     params = jax.tree.map(lambda x, s: np.asarray(x, s.dtype), params, template)
-    return cfg, params, manifest
+    return params, manifest
