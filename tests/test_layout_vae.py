@@ -66,6 +66,26 @@ def test_densities_are_scipys():
                                stats.poisson(np.exp(log_rate)).logpmf(k), atol=1e-5)
 
 
+def test_a_standing_actor_is_a_point_mass():
+    """A speed at or below zero_speed scores the probability of standing; a moving one that
+    of moving times the Gaussian density, as SceneGen's velocity measure."""
+    from scenegen_jax.model.layout_vae import actor_log_prob
+    from scenegen_jax.scene import PEDESTRIAN
+
+    out = jnp.asarray(np.random.default_rng(1).normal(size=19), jnp.float32)
+    args = dict(cls=jnp.asarray(PEDESTRIAN), position=jnp.zeros(2), size=jnp.ones(2),
+                heading=jnp.asarray(0.0), measured=jnp.asarray(False), grid=TINY.grid)
+    base = actor_log_prob(out, velocity=jnp.zeros(2), **args)
+    slow = actor_log_prob(out, velocity=jnp.array([0.1, 0.1]), **args)
+    moving = actor_log_prob(out, velocity=jnp.array([3.0, -1.0]), **args)
+    loc = gaussian2_log_prob(jnp.zeros(2), out[0:5]) - 2 * np.log(TINY.grid.region_m / 2)
+    assert float(base - loc) == pytest.approx(float(jax.nn.log_sigmoid(out[18])), abs=1e-5)
+    assert float(slow) == pytest.approx(float(base), abs=1e-6)
+    gauss = gaussian2_log_prob(jnp.array([0.3, -0.1]), out[13:18]) - 2 * np.log(10.0)
+    assert float(moving - loc) == pytest.approx(
+        float(jax.nn.log_sigmoid(-out[18]) + gauss), abs=1e-4)
+
+
 def test_layout_arrays_order_by_class_then_distance(val_cache):
     from scenegen_jax.likelihood.host_data import scene_actors
 

@@ -195,8 +195,8 @@ def add_parsers(sub) -> None:
     sp.add_argument("--val-data", required=True, nargs="+", metavar="CACHE",
                     help="held-out caches for its ADE/FDE against constant velocity")
     sp.add_argument("--workdir", required=True, type=path_arg,
-                    help="checkpoints, forecaster.json, metrics.jsonl (resumes)")
-    sp.add_argument("--steps", type=nonnegative_int, default=3000)
+                    help="checkpoints, run.json, metrics.jsonl (resumes)")
+    sp.add_argument("--steps", type=nonnegative_int, default=1000)
     sp.add_argument("--batch-size", type=positive_int, default=32)
     sp.add_argument("--lr", type=positive_float, default=1e-3)
     sp.add_argument("--seed", type=nonnegative_int, default=0)

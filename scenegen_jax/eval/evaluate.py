@@ -16,12 +16,13 @@ from scenegen_jax.config import Config
 from scenegen_jax.data.cache import Cache
 from scenegen_jax.data.sources import read_frames
 from scenegen_jax.eval import baselines
-from scenegen_jax.eval.features import features_mmd, scene_features
+from scenegen_jax.eval.features import features_interval, features_mmd, scene_features
 from scenegen_jax.eval.layout_vae import layout_vae_scores, sample_layout_vae, summarize
-from scenegen_jax.eval.mmd import mmd_table
+from scenegen_jax.eval.mmd import BOOTSTRAP_LEVEL, mmd_table
 from scenegen_jax.eval.nll import score_cache, summarize_by_source, summarize_scores
 from scenegen_jax.eval.realism import map_canvases, realism_stats
 from scenegen_jax.likelihood.batch import grid_scene
+from scenegen_jax.likelihood.host_data import cache_maps
 from scenegen_jax.sampling.batch import sample_scenes, seed_key
 from scenegen_jax.sampling.rollout import DEFAULT_OPTIONS, SamplerOptions
 
@@ -89,16 +90,24 @@ def sample_baselines(cfg: Config, cache: Cache, indices, train_cache: Cache, see
 
 
 def features_rows(forecaster, maps, scenes, generated: dict) -> dict:
-    """{method: Features MMD^2 against the real scenes}, and FLOOR's: the real scenes' even
-    against their odd halves, each on its own maps."""
+    """{method: (Features MMD^2 against the real scenes, its bootstrap interval)}, and
+    FLOOR's: the real scenes' even against their odd halves, each on its own maps."""
     fcfg, fparams = forecaster
     egos = jax.tree.map(lambda *x: np.stack(x), *[s.ego for s in scenes])
     real = [s.actors for s in scenes]
     f_real = scene_features(fparams, fcfg, maps, real, egos)
-    out = {m: features_mmd(f_real, scene_features(fparams, fcfg, maps, generated[m], egos))
-           for m in generated}
-    out[FLOOR] = features_mmd(f_real[0::2], f_real[1::2])
-    return out
+    pairs = {m: (f_real, scene_features(fparams, fcfg, maps, generated[m], egos))
+             for m in generated}
+    pairs[FLOOR] = (f_real[0::2], f_real[1::2])
+    return {m: (features_mmd(a, b), features_interval(a, b)) for m, (a, b) in pairs.items()}
+
+
+def _maps_for(grid, cfg: Config, maps, cache, indices):
+    """The conditioning scenes' maps with the channels `grid` reads: the model's own maps when
+    they are the same channels, else drawn again."""
+    if grid.map_channels == cfg.grid.map_channels:
+        return maps
+    return cache_maps(cache, grid, indices, progress=False)
 
 
 def evaluate(params, cfg: Config, cache: Cache, train_cache: Cache, num_scenes: int, seed: int,
@@ -115,9 +124,11 @@ def evaluate(params, cfg: Config, cache: Cache, train_cache: Cache, num_scenes: 
         raise ValueError(f"num_scenes must be >= 1, got {num_scenes}")
     companions = dict(companions or {})
     for kind, (ccfg, _) in companions.items():
-        if ccfg.grid != cfg.grid:
+        same = ("grid_size", "m_per_px", "zero_speed", "pedestrian_size_m")
+        if any(getattr(ccfg.grid, f) != getattr(cfg.grid, f) for f in same):
             raise ValueError(f"the {kind} reads the grid {ccfg.grid}, the model {cfg.grid}: "
-                             "it would not read the model's scenes")
+                             f"their {', '.join(same)} differ, so it would not read the "
+                             "model's scenes")
     seed_key(seed)  # checked now, not after the scoring
     train_cache.check_config(cfg)
     scores = score_cache(params, cache, cfg)
@@ -130,22 +141,27 @@ def evaluate(params, cfg: Config, cache: Cache, train_cache: Cache, num_scenes: 
     if "layoutvae" in companions:
         lcfg, lparams = companions["layoutvae"]
         egos = jax.tree.map(lambda *x: np.stack(x), *[s.ego for s in scenes])
-        generated["LayoutVAE"] = sample_layout_vae(lparams, lcfg, maps, egos, seed)
+        generated["LayoutVAE"] = sample_layout_vae(
+            lparams, lcfg, _maps_for(lcfg.grid, cfg, maps, cache, indices), egos, seed)
         baseline_nll["LayoutVAE"] = summarize(layout_vae_scores(lparams, lcfg, cache, seed))
     generated["SceneGen"] = sample_scenegen(params, cfg, maps, scenes, seed, options=options)
     methods = [m for m in METHODS if m in generated]
     real = [s.actors for s in scenes]
-    mmd = {m: mmd_table(real, generated[m], region_m=cfg.grid.region_m) for m in methods}
-    mmd[FLOOR] = mmd_table(real[0::2], real[1::2], region_m=cfg.grid.region_m)
+    halves = {**{m: (real, generated[m]) for m in methods}, FLOOR: (real[0::2], real[1::2])}
+    interval = {m: {} for m in halves}
+    mmd = {m: mmd_table(a, b, region_m=cfg.grid.region_m, intervals=interval[m])
+           for m, (a, b) in halves.items()}
     if "forecaster" in companions:
-        for m, value in features_rows(companions["forecaster"], maps, scenes,
-                                      generated).items():
-            mmd[m]["features"] = value
+        fmaps = _maps_for(companions["forecaster"][0].grid, cfg, maps, cache, indices)
+        for m, (value, low_high) in features_rows(companions["forecaster"], fmaps, scenes,
+                                                  generated).items():
+            mmd[m]["features"], interval[m]["features"] = value, low_high
     canvases = list(map_canvases(cache, indices, cfg))
     realism = {m: realism_stats(canvases, generated[m], cfg) for m in methods}
     realism["real"] = realism_stats(canvases, real, cfg)
     return {"nll": nll, "nll_by_source": nll_by_source, "baseline_nll": baseline_nll,
-            "mmd": mmd, "realism": realism, "conditioning_scenes": len(indices)}
+            "mmd": mmd, "mmd_interval": interval, "realism": realism,
+            "conditioning_scenes": len(indices)}
 
 
 def format_table(report: dict) -> str:
@@ -159,9 +175,13 @@ def format_table(report: dict) -> str:
         scene_nll = (f"{nll['scene_nll']:.1f}" if m == "SceneGen" else
                      f"{report['baseline_nll'][m]['scene_nll']:.1f}"
                      if m in report.get("baseline_nll", {}) else "-")
-        row = [f"{report['mmd'][m][r]:.4f}" if r in report["mmd"][m] else "-"
+        row = [_with_interval(report["mmd"][m].get(r),
+                              report.get("mmd_interval", {}).get(m, {}).get(r))
                for r in MMD_ROWS]
         lines.append(" | ".join([m, scene_nll, *row]))
+    lines.append(f"MMD^2 on {report['conditioning_scenes']} conditioning scenes, in brackets "
+                 f"its {BOOTSTRAP_LEVEL:.0%} bootstrap interval; {FLOOR}: the real scenes' "
+                 "halves against each other")
     lines.append("")
     lines.append("realism | vehicles on drivable (of within 40 m) | lane-aligned (of on a lane) "
                  "| median offset of the aligned | overlapping pairs | actors/scene "
@@ -188,6 +208,14 @@ def format_table(report: dict) -> str:
                 f"{name} | {r['scenes']} | {r['scene_nll']:.1f} | {r['nll_per_actor']:.2f}"
             )
     return "\n".join(lines)
+
+
+def _with_interval(value, interval) -> str:
+    if value is None:
+        return "-"
+    if not interval:
+        return f"{value:.4f}"
+    return f"{value:.4f} ({interval[0]:.4f}-{interval[1]:.4f})"
 
 
 def _share(x) -> str:

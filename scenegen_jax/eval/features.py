@@ -15,7 +15,7 @@ from collections.abc import Sequence
 import jax
 import numpy as np
 
-from scenegen_jax.eval.mmd import mmd, rbf_kernel
+from scenegen_jax.eval.mmd import mmd, mmd_interval, rbf_kernel
 from scenegen_jax.model.forecaster import ForecasterConfig, draw_scene_rasters, forecast
 from scenegen_jax.scene import Actors
 
@@ -50,3 +50,8 @@ def scene_features(params, cfg: ForecasterConfig, maps, actors_list: Sequence[Ac
 def features_mmd(real: np.ndarray, generated: np.ndarray, unbiased: bool = False) -> float:
     """MMD^2 between two sets of scene features [m, D] and [n, D] (RBF, bandwidth 1)."""
     return mmd(real, generated, BANDWIDTH, unbiased, kernel=rbf_kernel)
+
+
+def features_interval(real: np.ndarray, generated: np.ndarray) -> list[float]:
+    """The bootstrap interval of `features_mmd` (`eval.mmd.mmd_interval`)."""
+    return mmd_interval(real, generated, BANDWIDTH, kernel=rbf_kernel)

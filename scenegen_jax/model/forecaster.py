@@ -38,12 +38,14 @@ class ForecasterConfig:
       the scene feature has widths[-1] dimensions.
     hidden: width of the per-actor head's two hidden layers.
     groups: GroupNorm groups of every backbone layer.
+    dropout: the head's dropout rate in training.
     """
 
     grid: GridConfig
     widths: tuple[int, int, int] = (32, 64, 64)
     hidden: int = 128
     groups: int = 8
+    dropout: float = 0.3
 
     def __post_init__(self):
         if len(self.widths) != 3 or any(w < 1 or w % self.groups for w in self.widths):
@@ -59,12 +61,13 @@ class ForecasterConfig:
         return self.widths[-1]
 
     def to_dict(self) -> dict:
-        return {"widths": list(self.widths), "hidden": self.hidden, "groups": self.groups}
+        return {"widths": list(self.widths), "hidden": self.hidden, "groups": self.groups,
+                "dropout": self.dropout}
 
     @classmethod
     def from_dict(cls, d: dict, grid: GridConfig) -> ForecasterConfig:
         return cls(grid=grid, widths=tuple(d["widths"]), hidden=int(d["hidden"]),
-                   groups=int(d["groups"]))
+                   groups=int(d["groups"]), dropout=float(d["dropout"]))
 
 
 class Forecaster(nn.Module):
@@ -75,9 +78,10 @@ class Forecaster(nn.Module):
         return nn.relu(nn.GroupNorm(num_groups=self.cfg.groups)(x))
 
     @nn.compact
-    def __call__(self, raster, rows, cols, velocity):
+    def __call__(self, raster, rows, cols, velocity, train: bool = False):
         """Scene features [B, D] and displacements [B, A, H, 2] m of the actors at pixels
-        (rows, cols) [B, A] of rasters [B, G, G, C], moving at velocity [B, A, 2] m/s."""
+        (rows, cols) [B, A] of rasters [B, G, G, C], moving at velocity [B, A, 2] m/s; with
+        `train`, the head's dropout is on (its "dropout" rng)."""
         w = self.cfg.widths
         full = self._block(self._block(raster, w[0], 1), w[0], 1)
         half = self._block(self._block(full, w[1], 2), w[1], 1)
@@ -88,8 +92,9 @@ class Forecaster(nn.Module):
         take = jax.vmap(lambda fmap, i, j: fmap[i, j])
         x = jnp.concatenate([take(full, r, c), take(half, r // 2, c // 2),
                              take(quarter, r // 4, c // 4), velocity / 10.0], axis=-1)
-        x = nn.relu(nn.Dense(self.cfg.hidden)(x))
-        x = nn.relu(nn.Dense(self.cfg.hidden)(x))
+        drop = nn.Dropout(self.cfg.dropout, deterministic=not train)
+        x = drop(nn.relu(nn.Dense(self.cfg.hidden)(drop(x))))
+        x = drop(nn.relu(nn.Dense(self.cfg.hidden)(x)))
         out = nn.Dense(2 * len(FUTURE_HORIZONS_S), kernel_init=nn.initializers.zeros)(x)
         correction = out.reshape(*out.shape[:-1], len(FUTURE_HORIZONS_S), 2)
         return features, constant_velocity(velocity) + correction * DISPLACEMENT_SCALE_M
@@ -116,11 +121,16 @@ def scene_raster(maps, actors: Actors, ego: Actors, grid: GridConfig):
     return jnp.concatenate([maps, draw(actors, ego)], axis=-1)
 
 
-def apply_forecaster(params, cfg: ForecasterConfig, raster, positions, velocities):
+def apply_forecaster(params, cfg: ForecasterConfig, raster, positions, velocities,
+                     dropout_key=None):
     """(scene features [B, D], displacements [B, A, H, 2] m) of actors at positions
-    [B, A, 2] m moving at velocities [B, A, 2] m/s."""
+    [B, A, 2] m moving at velocities [B, A, 2] m/s; in training (`dropout_key` given) with
+    the head's dropout."""
     rows, cols = pixel_of(positions, cfg.grid)
-    return Forecaster(cfg).apply({"params": params}, raster, rows, cols, velocities)
+    if dropout_key is None:
+        return Forecaster(cfg).apply({"params": params}, raster, rows, cols, velocities)
+    return Forecaster(cfg).apply({"params": params}, raster, rows, cols, velocities, True,
+                                 rngs={"dropout": dropout_key})
 
 
 # Jitted forms for the drivers (training, evaluation), each compiled once per config.

@@ -9,7 +9,11 @@ describes: the learned baseline with a likelihood.
   before it; given z, a bivariate Gaussian location (m), a bivariate log-normal box (width,
   length; m), a von Mises heading and a bivariate Gaussian velocity (m/s): the paper's
   outputs, with the heading that an oriented box needs. As in SceneGen, a pedestrian has no
-  box nor heading term, nor has a box its size source did not measure.
+  box nor heading term, nor has a box its size source did not measure, and a speed at or
+  below the grid's `zero_speed` is a point mass: the velocity's measure is a probability of
+  standing plus the Gaussian's density times that of moving (the Gaussian's little mass
+  inside the `zero_speed` disc is not given back: the likelihood errs low, never high), so
+  the NLLs of the two models are in the same units.
 
 Training maximises the ELBO (one reparameterised sample per step). A scene's likelihood is
 estimated by Monte Carlo with samples of the conditional prior (`log_likelihood`, 1,000 by
@@ -35,7 +39,7 @@ from scenegen_jax.distributions.mixtures import (
 from scenegen_jax.scene import BICYCLIST, NUM_CLASSES, PEDESTRIAN, VEHICLE, Actors, in_region
 
 ATTRIBUTE_SIZE = NUM_CLASSES + 8  # class one-hot, position, log size, heading, velocity
-OUTPUT_SIZE = 18  # location 5, log box 5, heading 3, velocity 5
+OUTPUT_SIZE = 19  # location 5, log box 5, heading 3, velocity 5, standing 1
 VELOCITY_SCALE = 10.0  # m/s: velocities are read and written in these units
 CLASS_ORDER = (VEHICLE, PEDESTRIAN, BICYCLIST)
 LOG_2PI = float(np.log(2 * np.pi))
@@ -148,21 +152,25 @@ def gaussian_kl(mu_q, logvar_q, mu_p, logvar_p):
 def actor_log_prob(out, cls, position, size, heading, velocity, measured, grid: GridConfig):
     """log p [...] of actors' attributes under decoder outputs `out` [..., OUTPUT_SIZE]:
     location (m^-2), box (m^-2, only for a measured vehicle or bicyclist box), heading
-    (rad^-1, not for pedestrians), velocity ((m/s)^-2)."""
+    (rad^-1, not for pedestrians), velocity (the probability of standing, or that of moving
+    times the density in (m/s)^-2)."""
     scale = grid.region_m / 2
     loc = gaussian2_log_prob(position / scale, out[..., 0:5]) - 2 * np.log(scale)
     boxed = (cls != PEDESTRIAN) & measured
     log_size = jnp.log(jnp.maximum(size, 1e-3))
     box = gaussian2_log_prob(log_size, out[..., 5:10]) - log_size.sum(-1)
     head = vonmises_log_prob(heading, out[..., 10:12], out[..., 12])
-    vel = (gaussian2_log_prob(velocity / VELOCITY_SCALE, out[..., 13:18])
-           - 2 * np.log(VELOCITY_SCALE))
+    moving = (gaussian2_log_prob(velocity / VELOCITY_SCALE, out[..., 13:18])
+              - 2 * np.log(VELOCITY_SCALE))
+    standing = jnp.sum(velocity**2, -1) <= grid.zero_speed**2
+    vel = jnp.where(standing, jax.nn.log_sigmoid(out[..., 18]),
+                    jax.nn.log_sigmoid(-out[..., 18]) + moving)
     return loc + jnp.where(boxed, box, 0.0) + jnp.where(cls != PEDESTRIAN, head, 0.0) + vel
 
 
 def sample_actor(key, out, cls, grid: GridConfig):
     """(position [..., 2], size [..., 2], heading, velocity [..., 2]) drawn from `out`."""
-    k = jax.random.split(key, 4)
+    k = jax.random.split(key, 5)
     scale = grid.region_m / 2
     position = gaussian2_sample(k[0], out[..., 0:5]) * scale
     size = jnp.exp(gaussian2_sample(k[1], out[..., 5:10]))
@@ -171,6 +179,8 @@ def sample_actor(key, out, cls, grid: GridConfig):
     heading = jax.vmap(vonmises_from_uniforms)(
         u, out[..., 10:12].reshape(-1, 2), out[..., 12].reshape(-1)).reshape(lead)
     velocity = gaussian2_sample(k[3], out[..., 13:18]) * VELOCITY_SCALE
+    standing = jax.random.uniform(k[4], out.shape[:-1]) < jax.nn.sigmoid(out[..., 18])
+    velocity = jnp.where(standing[..., None], 0.0, velocity)
     ped = cls == PEDESTRIAN
     size = jnp.where(ped[..., None], grid.pedestrian_size_m, size)
     heading = jnp.where(ped, 0.0, heading)

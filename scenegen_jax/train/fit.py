@@ -70,21 +70,29 @@ def take_rows(data, rows: np.ndarray):
     return jax.tree.map(lambda x: x[rows], data)
 
 
-@functools.partial(jax.jit, static_argnames=("loss", "lr"), donate_argnums=0)
-def _step(state: FitState, batch, key, loss: Callable, lr: float):
+def optimizer(lr: float, weight_decay: float = 0.0):
+    """Adam, or AdamW with a weight decay."""
+    return optax.adamw(lr, weight_decay=weight_decay) if weight_decay else optax.adam(lr)
+
+
+@functools.partial(jax.jit, static_argnames=("loss", "lr", "weight_decay"), donate_argnums=0)
+def _step(state: FitState, batch, key, loss: Callable, lr: float, weight_decay: float):
     value, grads = jax.value_and_grad(loss)(state.params, batch, key)
-    updates, opt_state = optax.adam(lr).update(grads, state.opt_state, state.params)
+    updates, opt_state = optimizer(lr, weight_decay).update(grads, state.opt_state,
+                                                            state.params)
     return FitState(state.step + 1, optax.apply_updates(state.params, updates), opt_state), value
 
 
 def fit(loss: Callable, params, data, workdir: str, steps: int, batch_size: int = 32,
         lr: float = 1e-3, seed: int = 0, save_every: int = 250, progress: bool = True,
-        desc: str = "train"):
+        desc: str = "train", weight_decay: float = 0.0):
     """Trains `params` on `loss(params, batch, key) -> scalar` (a module-level function, the
-    jit's static argument) up to `steps`, resuming from the newest checkpoint in `workdir`;
-    returns the parameters. `data`: host arrays [N, ...] (a NamedTuple or any pytree)."""
+    jit's static argument) with `optimizer(lr, weight_decay)` up to `steps`, resuming from
+    the newest checkpoint in `workdir`; returns the parameters. `data`: host arrays [N, ...]
+    (a NamedTuple or any pytree)."""
     rows = len(jax.tree.leaves(data)[0])
-    state = FitState(jnp.zeros((), jnp.int32), params, optax.adam(lr).init(params))
+    state = FitState(jnp.zeros((), jnp.int32), params,
+                     optimizer(lr, weight_decay).init(params))
     ckpt = Checkpointer(os.path.join(workdir, CHECKPOINTS), save_every, keep=2, heal=True)
     restored = ckpt.restore_latest(state)
     if restored is not None:
@@ -97,7 +105,8 @@ def fit(loss: Callable, params, data, workdir: str, steps: int, batch_size: int 
     base = jax.random.key(seed)
     for step in range(start, steps):
         batch = take_rows(data, batch_indices(seed, step, rows, batch_size))
-        state, value = _step(state, batch, jax.random.fold_in(base, step), loss, lr)
+        state, value = _step(state, batch, jax.random.fold_in(base, step), loss, lr,
+                             weight_decay)
         losses.append(value)
         if (step + 1) % LOG_EVERY == 0 or step + 1 == steps:
             mean = float(np.mean(jax.device_get(losses)))

@@ -10,6 +10,7 @@ import functools
 import logging
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
@@ -29,6 +30,8 @@ from scenegen_jax.model.forecaster import (
     init_forecaster,
     scene_actors,
 )
+from scenegen_jax.raster.actors import ACTOR_CHANNELS
+from scenegen_jax.raster.map import VECTOR_CHANNELS
 from scenegen_jax.train.fit import fit, take_rows
 
 log = logging.getLogger(__name__)
@@ -85,10 +88,52 @@ def masked_huber(pred, target, seen):
     return loss.sum() / jnp.maximum(known.sum(), 1)
 
 
+# AdamW's decoupled weight decay: with the dropout and the quarter turns, what keeps the
+# forecaster from learning the few thousand training scenes by heart.
+WEIGHT_DECAY = 1e-4
+
+
+def vector_channel_pairs(grid: GridConfig) -> list[tuple[int, int]]:
+    """The (cos, sin) channel pairs of the forecaster's raster: directions that turn with it
+    (the map's `VECTOR_CHANNELS` the grid draws, the actors' velocity and heading)."""
+    names = [*grid.map_channels, *ACTOR_CHANNELS]
+    pairs = [*VECTOR_CHANNELS, ("vel_cos", "vel_sin"), ("heading_cos", "heading_sin")]
+    return [(names.index(c), names.index(s)) for c, s in pairs if c in names]
+
+
+def _turn(v, k):
+    """Vectors [..., 2] turned by k quarter turns (counterclockwise)."""
+    c, s = jnp.array([1.0, 0.0, -1.0, 0.0])[k], jnp.array([0.0, 1.0, 0.0, -1.0])[k]
+    return jnp.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]], -1)
+
+
+def quarter_turns(batch: ForecastData, k, grid: GridConfig) -> ForecastData:
+    """Each scene of a batch turned about the ego by k [B] quarter turns: exact on the
+    raster (the grid is symmetric about the ego), its direction channels and every
+    position, velocity and displacement turned alike."""
+
+    def one(raster, position, velocity, target, k):
+        raster = jax.lax.switch(k, [functools.partial(jnp.rot90, k=i, axes=(0, 1))
+                                    for i in range(4)], raster)
+        for c, s in vector_channel_pairs(grid):
+            turned = _turn(jnp.stack([raster[..., c], raster[..., s]], -1), k)
+            raster = raster.at[..., c].set(turned[..., 0]).at[..., s].set(turned[..., 1])
+        return raster, _turn(position, k), _turn(velocity, k), _turn(target, k)
+
+    raster, position, velocity, target = jax.vmap(one)(
+        batch.raster, batch.position, batch.velocity, batch.target, k)
+    return ForecastData(raster, position, velocity, batch.seen, target)
+
+
 def forecaster_loss(params, batch: ForecastData, key, cfg: ForecasterConfig):
-    """The training loss of a batch (`key` unused: the forecaster is deterministic)."""
-    del key
-    _, pred = apply_forecaster(params, cfg, batch.raster, batch.position, batch.velocity)
+    """The training loss of a batch, each scene turned by a random number of quarter turns
+    (the data hold a few thousand scenes: the forecaster learns the motion, not the maps'
+    orientations)."""
+    turns, dropout = jax.random.split(key)
+    batch = quarter_turns(batch, jax.random.randint(turns, (len(batch.raster),), 0, 4),
+                          cfg.grid)
+    _, pred = apply_forecaster(params, cfg, batch.raster, batch.position, batch.velocity,
+                               dropout)
     return masked_huber(pred, batch.target, batch.seen)
 
 
@@ -118,4 +163,4 @@ def train_forecaster(cfg: ForecasterConfig, train: ForecastData, workdir: str, s
     parameters (`fit.fit`)."""
     return fit(functools.partial(forecaster_loss, cfg=cfg), init_forecaster(cfg, seed), train,
                workdir, steps, batch_size, lr, seed, save_every, progress,
-               desc="train forecaster")
+               desc="train forecaster", weight_decay=WEIGHT_DECAY)
