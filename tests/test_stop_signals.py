@@ -88,3 +88,28 @@ def test_a_stop_inside_a_garbage_collector_callback_is_delivered_after_it(monkey
             time.sleep(5)  # the redelivered signal interrupts this
     finally:
         signals.restore(previous)
+
+
+def test_a_stop_turned_into_an_import_error_still_exits_as_the_stop(monkeypatch):
+    """A stop that arrives while an extension module initialises comes back as its
+    ImportError (tensorstore's "initialization failed"): the command still exits as stopped
+    (143 for SIGTERM), not with a traceback; without a stop the error is raised as it is."""
+    from scenegen_jax import cli
+
+    def stopped_in_an_import(argv):
+        signals._received.append(signal.SIGTERM)
+        raise ImportError("initialization failed")
+
+    monkeypatch.setattr(signals, "_received", [])
+    monkeypatch.setattr(cli, "_run", stopped_in_an_import)
+    with pytest.raises(SystemExit) as e:
+        cli.main(["models"])
+    assert e.value.code == 143
+
+    def failed_import(argv):
+        raise ImportError("no module named x")
+
+    monkeypatch.setattr(signals, "_received", [])
+    monkeypatch.setattr(cli, "_run", failed_import)
+    with pytest.raises(ImportError, match="no module named x"):
+        cli.main(["models"])

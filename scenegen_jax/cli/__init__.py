@@ -86,6 +86,13 @@ def main(argv: list[str] | None = None) -> None:
         _run(argv)
     except KeyboardInterrupt as e:  # `signals.Stopped`: Ctrl-C or SIGTERM, at any moment
         raise _stopped(e) from None
+    except Exception:
+        # A stop that arrives while an extension module initialises comes back as that
+        # module's ImportError ("initialization failed"): it is still the stop.
+        stop = signals.pending_stop()
+        if stop is None:
+            raise
+        raise _stopped(stop) from None
     finally:
         if argv is None:  # the command's work is done, its outputs whole
             signals.ignore_while_exiting()

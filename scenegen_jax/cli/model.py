@@ -128,6 +128,23 @@ def cmd_models(args) -> None:
               f"{manifest['parameters']} parameters{sampler}")
 
 
+def _add_companion_args(sp, grid: str, data: str, val: str, steps: int, folder: str) -> None:
+    """The arguments of the commands that train a model shipped beside SceneGen."""
+    sp.add_argument("--config", default="cpu", choices=sorted(PRESETS),
+                    help=f"the preset whose grid it {grid}")
+    sp.add_argument("--data", required=True, nargs="+", metavar="CACHE", help=data)
+    sp.add_argument("--val-data", required=True, nargs="+", metavar="CACHE",
+                    help=f"held-out caches for {val}")
+    sp.add_argument("--workdir", required=True, type=path_arg,
+                    help="checkpoints, run.json, metrics.jsonl (resumes)")
+    sp.add_argument("--steps", type=nonnegative_int, default=steps)
+    sp.add_argument("--batch-size", type=positive_int, default=32)
+    sp.add_argument("--lr", type=positive_float, default=1e-3)
+    sp.add_argument("--seed", type=nonnegative_int, default=0)
+    sp.add_argument("--out", type=path_arg, help="the pretrained model (name or directory) to "
+                    f"ship it with, in its {folder} folder")
+
+
 def add_parsers(sub) -> None:
     """Registers this module's subcommands."""
     sp = sub.add_parser("train", help="train a model on a cache")
@@ -188,41 +205,16 @@ def add_parsers(sub) -> None:
 
     sp = sub.add_parser("train-forecaster", help="train the motion forecaster whose features "
                         "give `evaluate`'s Features MMD, on caches with futures")
-    sp.add_argument("--config", default="cpu", choices=sorted(PRESETS),
-                    help="the preset whose grid it reads: the SceneGen model's it measures")
-    sp.add_argument("--data", required=True, nargs="+", metavar="CACHE",
-                    help="training caches (cache version 6: they hold the actors' futures)")
-    sp.add_argument("--val-data", required=True, nargs="+", metavar="CACHE",
-                    help="held-out caches for its ADE/FDE against constant velocity")
-    sp.add_argument("--workdir", required=True, type=path_arg,
-                    help="checkpoints, run.json, metrics.jsonl (resumes)")
-    sp.add_argument("--steps", type=nonnegative_int, default=1000)
-    sp.add_argument("--batch-size", type=positive_int, default=32)
-    sp.add_argument("--lr", type=positive_float, default=1e-3)
-    sp.add_argument("--seed", type=nonnegative_int, default=0)
-    sp.add_argument("--out", type=path_arg,
-                    help="the pretrained model (name or directory) to ship it with, in its "
-                    "forecaster/ folder")
+    _add_companion_args(sp, "reads: the SceneGen model's it measures",
+                        "training caches (cache version 6: they hold the actors' futures)",
+                        "its ADE/FDE against constant velocity", 1000, "forecaster/")
     sp.set_defaults(func=cmd_train_forecaster)
 
     sp = sub.add_parser("train-baseline", help="train a learned baseline of the paper's "
                         "Table 1 on the training caches")
     sp.add_argument("name", choices=["layoutvae"], help="the baseline")
-    sp.add_argument("--config", default="cpu", choices=sorted(PRESETS),
-                    help="the preset whose grid it generates on: the SceneGen model's")
-    sp.add_argument("--data", required=True, nargs="+", metavar="CACHE",
-                    help="training caches (SceneGen's)")
-    sp.add_argument("--val-data", required=True, nargs="+", metavar="CACHE",
-                    help="held-out caches for its Monte-Carlo NLL")
-    sp.add_argument("--workdir", required=True, type=path_arg,
-                    help="checkpoints, run.json, metrics.jsonl (resumes)")
-    sp.add_argument("--steps", type=nonnegative_int, default=3000)
-    sp.add_argument("--batch-size", type=positive_int, default=32)
-    sp.add_argument("--lr", type=positive_float, default=1e-3)
-    sp.add_argument("--seed", type=nonnegative_int, default=0)
-    sp.add_argument("--out", type=path_arg,
-                    help="the pretrained model (name or directory) to ship it with, in its "
-                    "NAME/ folder")
+    _add_companion_args(sp, "generates on: the SceneGen model's", "training caches (SceneGen's)",
+                        "its Monte-Carlo NLL", 3000, "NAME/")
     sp.set_defaults(func=cmd_train_baseline)
 
     sp = sub.add_parser("models", help="list the pretrained models shipped with the package")
