@@ -164,7 +164,8 @@ def cmd_report(args) -> None:
                   "| M | " + " | ".join(MMD_ROWS) + " | vehicles on drivable |",
                   "|---" * (len(MMD_ROWS) + 2) + "|"]
         for r in records:
-            row = [f"{r['mmd'][k]:.4f}" for k in MMD_ROWS]
+            row = [f"{r['mmd'][k]:.4f}" if r["mmd"].get(k) is not None else "-"
+                   for k in MMD_ROWS]
             lines.append(f"| {r['value']} | " + " | ".join(row)
                          + f" | {100 * r['vehicles_on_drivable']:.1f}% |")
         ys = {k: [r["mmd"][k] for r in records] for k in ("class/all", "area/all", "speed/all",
