@@ -183,6 +183,7 @@ def test_a_damaged_forecaster_is_named(shipped, tmp_path):
 def test_evaluate_reports_the_features_column_and_the_real_floor(tmp_path, data_root):
     from scenegen_jax.eval.evaluate import FLOOR, MMD_ROWS, evaluate, format_table
     from scenegen_jax.model.forecaster import init_forecaster
+    from scenegen_jax.model.layout_vae import LayoutVAEConfig, init_layout_vae
     from scenegen_jax.train.step import init_state
 
     tiny = get_config("tiny")
@@ -192,13 +193,20 @@ def test_evaluate_reports_the_features_column_and_the_real_floor(tmp_path, data_
     cache = load_cache(str(tmp_path / "val"))
     fcfg = ForecasterConfig(grid=tiny.grid, widths=(8, 8, 8), hidden=16)
     params = jax.tree.map(np.asarray, init_state(tiny).params)
+    lcfg = LayoutVAEConfig(grid=tiny.grid, latent=4, hidden=16, widths=(8, 8, 8))
     report = evaluate(params, tiny, cache, cache, 4, 0,
-                      companions={"forecaster": (fcfg, init_forecaster(fcfg))})
-    for method in ("Prob. Grammar", "Procedural", "SceneGen", FLOOR):
+                      companions={"forecaster": (fcfg, init_forecaster(fcfg)),
+                                  "layoutvae": (lcfg, init_layout_vae(lcfg))})
+    for method in ("Prob. Grammar", "Procedural", "LayoutVAE", "SceneGen", FLOOR):
         assert set(report["mmd"][method]) == set(MMD_ROWS), method
         assert np.isfinite(report["mmd"][method]["features"]), method
+        low, high = report["mmd_interval"][method]["features"]
+        assert low <= report["mmd"][method]["features"] <= high, method
+    assert report["baseline_nll"]["LayoutVAE"]["scenes"] == len(cache)
+    assert np.isfinite(report["baseline_nll"]["LayoutVAE"]["scene_nll"])
     table = format_table(report)
     assert "features" in table.splitlines()[0] and f"\n{FLOOR} | - | " in table
+    assert "\nLayoutVAE | " in table and "\nLayoutVAE | - |" not in table
     with pytest.raises(ValueError, match="the forecaster reads the grid"):
         evaluate(params, tiny, cache, cache, 4, 0,
                  companions={"forecaster": (ForecasterConfig(grid=CPU.grid), None)})

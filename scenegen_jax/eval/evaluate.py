@@ -89,11 +89,11 @@ def sample_baselines(cfg: Config, cache: Cache, indices, train_cache: Cache, see
     }
 
 
-def features_rows(forecaster, maps, scenes, generated: dict) -> dict:
+def features_rows(forecaster, maps, scenes, egos, generated: dict) -> dict:
     """{method: (Features MMD^2 against the real scenes, its bootstrap interval)}, and
-    FLOOR's: the real scenes' even against their odd halves, each on its own maps."""
+    FLOOR's: the real scenes' even against their odd halves, each on its own maps; `egos`:
+    the scenes' egos stacked (Actors [n])."""
     fcfg, fparams = forecaster
-    egos = jax.tree.map(lambda *x: np.stack(x), *[s.ego for s in scenes])
     real = [s.actors for s in scenes]
     f_real = scene_features(fparams, fcfg, maps, real, egos)
     pairs = {m: (f_real, scene_features(fparams, fcfg, maps, generated[m], egos))
@@ -137,10 +137,10 @@ def evaluate(params, cfg: Config, cache: Cache, train_cache: Cache, num_scenes: 
     indices = np.linspace(0, len(cache) - 1, min(num_scenes, len(cache))).astype(int)
     maps, scenes = real_scenes(cache, indices, cfg)
     generated = sample_baselines(cfg, cache, indices, train_cache, seed)
+    egos = jax.tree.map(lambda *x: np.stack(x), *[s.ego for s in scenes])
     baseline_nll = {}
     if "layoutvae" in companions:
         lcfg, lparams = companions["layoutvae"]
-        egos = jax.tree.map(lambda *x: np.stack(x), *[s.ego for s in scenes])
         generated["LayoutVAE"] = sample_layout_vae(
             lparams, lcfg, _maps_for(lcfg.grid, cfg, maps, cache, indices), egos, seed)
         baseline_nll["LayoutVAE"] = summarize(layout_vae_scores(lparams, lcfg, cache, seed))
@@ -153,7 +153,7 @@ def evaluate(params, cfg: Config, cache: Cache, train_cache: Cache, num_scenes: 
            for m, (a, b) in halves.items()}
     if "forecaster" in companions:
         fmaps = _maps_for(companions["forecaster"][0].grid, cfg, maps, cache, indices)
-        for m, (value, low_high) in features_rows(companions["forecaster"], fmaps, scenes,
+        for m, (value, low_high) in features_rows(companions["forecaster"], fmaps, scenes, egos,
                                                   generated).items():
             mmd[m]["features"], interval[m]["features"] = value, low_high
     canvases = list(map_canvases(cache, indices, cfg))
