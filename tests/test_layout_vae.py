@@ -87,9 +87,9 @@ def test_a_standing_actor_is_a_point_mass():
 
 
 def test_layout_arrays_order_by_class_then_distance(val_cache):
-    from scenegen_jax.likelihood.host_data import scene_actors
+    from scenegen_jax.data.cache import cached_actors
 
-    actors = scene_actors(val_cache, 0)
+    actors = cached_actors(val_cache, 0)
     arr = layout_arrays(actors, TINY.grid)
     n = int(arr["valid"].sum())
     inside = np.asarray(actors.valid) & in_region(np.asarray(actors.position), TINY.grid)

@@ -409,9 +409,13 @@ def check_compatible(caches: Iterable[Cache], cfg: Config) -> None:
             )
 
 
+def cached_actors(cache: Cache, index: int) -> Actors:
+    """The cached actors [A] of scene `index` (numpy, unrotated)."""
+    return Actors(**{k: getattr(cache.actors, k)[index] for k in ACTOR_FIELDS})
+
+
 def cached_scene(cache: Cache, index: int, cfg: Config) -> tuple[VectorMap, Actors, Actors]:
     """(vector map in the ego frame, cached actors [A], ego) of scene `index`, as numpy."""
     if not 0 <= index < len(cache):
         raise IndexError(f"{cache.path}: scene index {index} out of range [0, {len(cache)})")
-    actors = Actors(**{k: getattr(cache.actors, k)[index] for k in ACTOR_FIELDS})
-    return cache.map_store.frame_map(index), actors, cache.ego(index)
+    return cache.map_store.frame_map(index), cached_actors(cache, index), cache.ego(index)

@@ -10,18 +10,12 @@ import numpy as np
 from tqdm import tqdm
 
 from scenegen_jax.config import GridConfig
+from scenegen_jax.data.cache import cached_actors
 from scenegen_jax.model.layout_vae import layout_arrays
 from scenegen_jax.raster.jax_map import draw_maps
-from scenegen_jax.scene import Actors
 
 # Scenes drawn per compiled call.
 DRAW_CHUNK = 32
-_FIELDS = ("cls", "position", "size", "heading", "velocity", "valid", "size_measured")
-
-
-def scene_actors(cache, index: int) -> Actors:
-    """Scene `index`'s cached actors (numpy, [A] slots, unrotated)."""
-    return Actors(**{k: getattr(cache.actors, k)[index] for k in _FIELDS})
 
 
 def cache_maps(cache, grid: GridConfig, indices=None, progress: bool = True,
@@ -46,7 +40,7 @@ def layout_data(cache, grid: GridConfig, indices=None, progress: bool = True,
     """LayoutVAE's arrays of the scenes `indices` (default: all): `layout_arrays` of each,
     stacked, with the maps (`cache_maps`) and the egos' velocities."""
     indices = np.arange(len(cache)) if indices is None else np.asarray(indices)
-    rows = [layout_arrays(scene_actors(cache, int(i)), grid) for i in indices]
+    rows = [layout_arrays(cached_actors(cache, int(i)), grid) for i in indices]
     out = {k: np.stack([r[k] for r in rows]) for k in rows[0]} if rows else {}
     out["maps"] = cache_maps(cache, grid, indices, progress, desc)
     out["ego_velocity"] = np.asarray(cache.ego_velocity[indices], np.float32)
